@@ -1,0 +1,7 @@
+"""``python -m mtex_jax`` is the ``mtex`` command."""
+
+import sys
+
+from ._cli import main
+
+sys.exit(main())

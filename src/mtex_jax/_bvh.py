@@ -1,0 +1,427 @@
+"""BVH reader and writer (any channel order and Euler order per joint, end sites)."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ._motion import Motion
+from ._skeleton import POSITION_CHANNELS, ROTATION_CHANNELS, Skeleton
+
+__all__ = ["euler_to_quat", "parse_bvh", "quat_to_euler", "read_bvh", "write_bvh"]
+
+_CHANNEL_CANON = {c.lower(): c for c in ROTATION_CHANNELS + POSITION_CHANNELS}
+_AXIS = {"X": 0, "Y": 1, "Z": 2}
+
+
+class _Tokens:
+    """A stream of (token, line number) pairs with helpful errors."""
+
+    def __init__(self, lines: list[str], source: str, stop: int) -> None:
+        self.source = source
+        self._it: Iterator[tuple[str, int]] = (
+            (tok, i + 1) for i, line in enumerate(lines[:stop]) for tok in line.split()
+        )
+        self._peek: tuple[str, int] | None = None
+        self.last_line = max(stop, 1)
+
+    def error(self, line: int, msg: str) -> ValueError:
+        return ValueError(f"{self.source}:{line}: {msg}")
+
+    def next(self, what: str) -> tuple[str, int]:
+        if self._peek is not None:
+            t, self._peek = self._peek, None
+            return t
+        try:
+            return next(self._it)
+        except StopIteration:
+            raise self.error(
+                self.last_line, f"unexpected end of hierarchy, expected {what}"
+            ) from None
+
+    def expect(self, word: str) -> int:
+        tok, line = self.next(repr(word))
+        if tok != word:
+            raise self.error(line, f"expected {word!r}, found {tok!r}")
+        return line
+
+    def number(self, what: str) -> float:
+        tok, line = self.next(what)
+        try:
+            v = float(tok)
+        except ValueError:
+            raise self.error(line, f"non-numeric token {tok!r} where {what} was expected") from None
+        if not np.isfinite(v):
+            raise self.error(line, f"non-finite value {tok!r} for {what}")
+        return v
+
+
+def parse_bvh(text: str, source: str = "<string>") -> Motion:
+    """Parse BVH text into a :class:`Motion` (see :func:`read_bvh`)."""
+    lines = text.splitlines()
+    motion_line = next((i for i, ln in enumerate(lines) if ln.strip().upper() == "MOTION"), None)
+    if motion_line is None:
+        raise ValueError(f"{source}:{len(lines)}: no MOTION section (file truncated?)")
+    toks = _Tokens(lines, source, motion_line)
+
+    names: list[str] = []
+    parents: list[int] = []
+    offsets: list[tuple[float, float, float]] = []
+    channels: list[tuple[str, ...]] = []
+    end_sites: list[tuple[int, tuple[float, float, float]]] = []
+
+    def offset() -> tuple[float, float, float]:
+        return (toks.number("OFFSET x"), toks.number("OFFSET y"), toks.number("OFFSET z"))
+
+    def joint_body(name: str, parent: int, line: int) -> None:
+        idx = len(names)
+        names.append(name)
+        parents.append(parent)
+        offsets.append((0.0, 0.0, 0.0))
+        channels.append(())
+        toks.expect("{")
+        seen_offset = False
+        while True:
+            tok, ln = toks.next("'}'")
+            if tok == "}":
+                break
+            if tok == "OFFSET":
+                offsets[idx] = offset()
+                seen_offset = True
+            elif tok == "CHANNELS":
+                n = toks.number("channel count")
+                if n != int(n) or not 0 <= n <= 6:
+                    raise toks.error(ln, f"invalid channel count {n:g} for joint {name!r}")
+                chs = []
+                for _ in range(int(n)):
+                    c, cl = toks.next("channel name")
+                    canon = _CHANNEL_CANON.get(c.lower())
+                    if canon is None:
+                        raise toks.error(cl, f"unknown channel {c!r} for joint {name!r}")
+                    if canon in chs:
+                        raise toks.error(cl, f"repeated channel {c!r} for joint {name!r}")
+                    chs.append(canon)
+                channels[idx] = tuple(chs)
+            elif tok == "JOINT":
+                child, cl = toks.next("joint name")
+                joint_body(child, idx, cl)
+            elif tok == "End":
+                toks.expect("Site")
+                toks.expect("{")
+                toks.expect("OFFSET")
+                end_sites.append((idx, offset()))
+                toks.expect("}")
+            else:
+                raise toks.error(ln, f"unknown keyword {tok!r} in joint {name!r}")
+        if not seen_offset:
+            raise toks.error(line, f"joint {name!r} has no OFFSET")
+
+    toks.expect("HIERARCHY")
+    tok, ln = toks.next("'ROOT'")
+    if tok != "ROOT":
+        raise toks.error(ln, f"expected 'ROOT', found {tok!r}")
+    root_name, ln = toks.next("root name")
+    joint_body(root_name, -1, ln)
+    extra = next(toks._it, None)
+    if extra is not None:
+        raise toks.error(extra[1], f"unexpected {extra[0]!r} after the root joint (one ROOT only)")
+
+    try:
+        skeleton = Skeleton(
+            tuple(names), tuple(parents), tuple(offsets), tuple(channels), tuple(end_sites)
+        )
+    except ValueError as e:
+        raise ValueError(f"{source}: invalid skeleton: {e}") from None
+
+    # --- MOTION section ---------------------------------------------------------------
+    i = motion_line + 1
+    n_frames, i = _header_value(lines, i, "Frames:", source, integer=True)
+    frame_time, i = _header_value(lines, i, "Frame Time:", source, integer=False)
+    if n_frames <= 0:
+        raise ValueError(f"{source}:{i - 1}: zero frames (Frames: {int(n_frames)})")
+    if not frame_time > 0:
+        raise ValueError(f"{source}:{i}: Frame Time must be positive, got {frame_time:g}")
+    n_frames = int(n_frames)
+    data = lines[i : i + n_frames]
+    # trailing blank lines are fine; anything else after the frames is an error
+    tail = [k for k, ln in enumerate(lines[i + n_frames :]) if ln.strip()]
+    if tail:
+        raise ValueError(
+            f"{source}:{i + n_frames + tail[0] + 1}: more frame lines than 'Frames: {n_frames}'"
+        )
+    nc = skeleton.n_channels
+    toks_per_line = [ln.split() for ln in data]
+    for k, tl in enumerate(toks_per_line):
+        if len(tl) != nc:
+            raise ValueError(
+                f"{source}:{i + k + 1}: frame {k} has {len(tl)} values, expected {nc} "
+                f"(sum of CHANNELS)"
+            )
+    if len(data) < n_frames:
+        raise ValueError(
+            f"{source}:{len(lines)}: file truncated: 'Frames: {n_frames}' but only "
+            f"{len(data)} frame lines"
+        )
+    try:
+        values = np.array(list(itertools.chain.from_iterable(toks_per_line)), dtype=np.float64)
+    except ValueError:
+        for k, tl in enumerate(toks_per_line):
+            for t in tl:
+                try:
+                    float(t)
+                except ValueError:
+                    raise ValueError(
+                        f"{source}:{i + k + 1}: non-numeric token {t!r} in frame {k}"
+                    ) from None
+        raise
+    values = values.reshape(n_frames, nc)
+    if not np.all(np.isfinite(values)):
+        k = int(np.nonzero(~np.all(np.isfinite(values), axis=1))[0][0])
+        raise ValueError(f"{source}:{i + k + 1}: non-finite value in frame {k}")
+    fps = 1.0 / frame_time
+    if abs(fps - round(fps)) < 1e-4 * fps:
+        fps = float(round(fps))
+    return channels_to_motion(skeleton, values, fps)
+
+
+def _header_value(
+    lines: list[str], i: int, key: str, source: str, *, integer: bool
+) -> tuple[float, int]:
+    while i < len(lines) and not lines[i].strip():
+        i += 1
+    if i >= len(lines):
+        raise ValueError(f"{source}:{len(lines)}: file truncated, expected {key!r}")
+    ln = lines[i].strip()
+    if not ln.startswith(key):
+        raise ValueError(f"{source}:{i + 1}: expected {key!r}, found {ln[:40]!r}")
+    rest = ln[len(key) :].strip()
+    try:
+        v = float(rest)
+        if integer and v != int(v):
+            raise ValueError
+    except ValueError:
+        raise ValueError(f"{source}:{i + 1}: invalid value {rest!r} for {key!r}") from None
+    if not np.isfinite(v):
+        raise ValueError(f"{source}:{i + 1}: invalid value {rest!r} for {key!r}")
+    return v, i + 1
+
+
+def euler_to_quat(order: str, angles_deg: np.ndarray) -> np.ndarray:
+    """Intrinsic Euler angles (degrees, BVH convention) to quaternions ``(w, x, y, z)``.
+
+    ``order = "ZXY"`` means ``R = Rz(a0) @ Rx(a1) @ Ry(a2)``. ``angles_deg`` is
+    ``(..., len(order))``; an empty order gives the identity.
+    """
+    angles_deg = np.asarray(angles_deg, dtype=np.float64)
+    batch = angles_deg.shape[:-1]
+    if not order:
+        q = np.zeros((*batch, 4))
+        q[..., 0] = 1.0
+        return q
+    rot = Rotation.from_euler(order.upper(), angles_deg.reshape(-1, len(order)), degrees=True)
+    xyzw = rot.as_quat()
+    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=-1).reshape(*batch, 4)
+
+
+def quat_to_euler(order: str, q: np.ndarray) -> np.ndarray:
+    """Quaternions ``(w, x, y, z)`` to intrinsic Euler angles in degrees, ``(..., len(order))``.
+
+    For one axis the twist about that axis is returned; for two axes ``A, B`` the angles solve
+    ``R e_B = R_A(a) e_B`` and ``Rᵀ e_A = R_B(−b) e_A`` (exact when the rotation is representable
+    by those channels, a projection otherwise).
+    """
+    q = np.asarray(q, dtype=np.float64)
+    batch = q.shape[:-1]
+    n = len(order)
+    if n == 0:
+        return np.zeros((*batch, 0))
+    flat = q.reshape(-1, 4)
+    if n == 1:
+        ax = _AXIS[order.upper()]
+        ang = 2.0 * np.arctan2(flat[:, 1 + ax], flat[:, 0])
+        ang = (ang + np.pi) % (2 * np.pi) - np.pi
+        return np.degrees(ang).reshape(*batch, 1)
+    rot = Rotation.from_quat(np.concatenate([flat[:, 1:], flat[:, :1]], axis=-1))
+    if n == 2:
+        # R = R_A(a) R_B(b): R e_B = R_A(a) e_B and Rᵀ e_A = R_B(−b) e_A give a and b in closed
+        # form (the best fit when R is not representable by the two channels).
+        ea = np.eye(3)[_AXIS[order[0].upper()]]
+        eb = np.eye(3)[_AXIS[order[1].upper()]]
+        eab = np.cross(ea, eb)
+        mat = rot.as_matrix()
+        v = mat @ eb
+        w = np.einsum("nji,j->ni", mat, ea)
+        a = np.arctan2(v @ eab, v @ eb)
+        b = np.arctan2(w @ eab, w @ ea)
+        return np.degrees(np.stack([a, b], axis=-1)).reshape(*batch, 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        eul = rot.as_euler(order.upper(), degrees=True)
+    return eul.reshape(*batch, 3)
+
+
+def channels_to_motion(skeleton: Skeleton, values: np.ndarray, fps: float) -> Motion:
+    """Turn a ``(T, n_channels)`` table of BVH channel values into a :class:`Motion`."""
+    t = values.shape[0]
+    j = skeleton.n_joints
+    rot = np.zeros((t, j, 4))
+    off = skeleton.offsets_array
+    pos = np.broadcast_to(off, (t, j, 3)).copy()
+    col = 0
+    by_order: dict[str, list[tuple[int, list[int]]]] = {}
+    has_nonroot_pos = False
+    for ji, chs in enumerate(skeleton.channels):
+        rcols: list[int] = []
+        order = ""
+        for c in chs:
+            if c.endswith("position"):
+                pos[:, ji, _AXIS[c[0]]] = values[:, col]
+                if ji > 0:
+                    has_nonroot_pos = True
+            else:
+                rcols.append(col)
+                order += c[0]
+            col += 1
+        by_order.setdefault(order, []).append((ji, rcols))
+    for order, items in by_order.items():
+        idx = [ji for ji, _ in items]
+        cols = np.asarray([rc for _, rc in items], dtype=np.int64).reshape(len(items), len(order))
+        ang = values[:, cols]  # (T, G, n)
+        rot[:, idx] = euler_to_quat(order, ang)
+    local = pos if has_nonroot_pos else None
+    return Motion(skeleton, float(fps), pos[:, 0].copy(), rot, local)
+
+
+def motion_to_channels(motion: Motion) -> np.ndarray:
+    """Inverse of :func:`channels_to_motion`: a ``(T, n_channels)`` table in file order."""
+    m = motion.numpy()
+    sk = m.skeleton
+    t = m.n_frames
+    out = np.zeros((t, sk.n_channels))
+    col = 0
+    euler_cache: dict[int, np.ndarray] = {}
+    # group joints by order for vectorised conversion
+    by_order: dict[str, list[int]] = {}
+    for ji in range(sk.n_joints):
+        by_order.setdefault(sk.rotation_order(ji), []).append(ji)
+    for order, idx in by_order.items():
+        e = quat_to_euler(order, np.asarray(m.rotations)[:, idx])
+        for k, ji in enumerate(idx):
+            euler_cache[ji] = e[:, k]
+    for ji, chs in enumerate(sk.channels):
+        r = 0
+        for c in chs:
+            if c.endswith("position"):
+                if ji == 0:
+                    src = np.asarray(m.root_positions)
+                elif m.local_positions is not None:
+                    src = np.asarray(m.local_positions)[:, ji]
+                else:
+                    src = np.broadcast_to(sk.offsets_array[ji], (t, 3))
+                out[:, col] = src[:, _AXIS[c[0]]]
+            else:
+                out[:, col] = euler_cache[ji][:, r]
+                r += 1
+            col += 1
+    return out
+
+
+def read_bvh(path: str | os.PathLike[str]) -> Motion:
+    """Read a BVH file.
+
+    Every joint may have any subset of the six channels in any order; the rotation channels'
+    order is the intrinsic Euler order (``Zrotation Xrotation Yrotation`` → ``Rz Rx Ry``).
+    Position channels replace the corresponding component of the joint's OFFSET (for the
+    root they are the root position). ``End Site`` entries are kept in
+    ``skeleton.end_sites``. The frame rate is ``1 / Frame Time``, snapped to the nearest
+    integer when within 0.01 % of it.
+
+    Raises:
+        ValueError: on malformed input, naming the file and line (truncated file, wrong number
+            of values on a frame line, non-numeric or non-finite token, unknown keyword or
+            channel, zero frames, invalid frame time).
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8", errors="replace")
+    except OSError as e:
+        raise ValueError(f"{p}: cannot read BVH file: {e.strerror or e}") from None
+    return parse_bvh(text, str(p))
+
+
+def _dfs_order(sk: Skeleton) -> list[int]:
+    children: dict[int, list[int]] = {i: [] for i in range(sk.n_joints)}
+    for i, p in enumerate(sk.parents):
+        if p >= 0:
+            children[p].append(i)
+    order: list[int] = []
+    stack = [0]
+    while stack:
+        i = stack.pop()
+        order.append(i)
+        stack.extend(reversed(children[i]))
+    return order
+
+
+def write_bvh(path: str | os.PathLike[str], motion: Motion, *, precision: int = 6) -> None:
+    """Write a motion as BVH with the skeleton's channels and Euler orders.
+
+    Joints are written depth-first (children in index order), so a skeleton whose joints are
+    already in depth-first order (every skeleton read from BVH) reads back in the same order.
+    Frame values (Euler angles in degrees, positions in file units) are written with
+    ``precision`` decimals; offsets are written exactly.
+    """
+    sk = motion.skeleton
+    order = _dfs_order(sk)
+    children: dict[int, list[int]] = {i: [] for i in range(sk.n_joints)}
+    for i, p in enumerate(sk.parents):
+        if p >= 0:
+            children[p].append(i)
+    ends: dict[int, list[tuple[float, float, float]]] = {}
+    for p, o in sk.end_sites:
+        ends.setdefault(p, []).append(o)
+    fmt = f"%.{precision}f"
+    out: list[str] = ["HIERARCHY"]
+
+    def vec(o: tuple[float, float, float] | np.ndarray) -> str:
+        return " ".join(repr(float(x)) for x in o)  # offsets exactly (shortest round trip)
+
+    def emit(ji: int, depth: int) -> None:
+        ind = "\t" * depth
+        kw = "ROOT" if ji == 0 else "JOINT"
+        out.append(f"{ind}{kw} {sk.names[ji]}")
+        out.append(f"{ind}{{")
+        out.append(f"{ind}\tOFFSET {vec(sk.offsets[ji])}")
+        if sk.channels[ji] or ji == 0:
+            out.append(
+                f"{ind}\tCHANNELS {len(sk.channels[ji])} {' '.join(sk.channels[ji])}".rstrip()
+            )
+        for c in children[ji]:
+            emit(c, depth + 1)
+        for o in ends.get(ji, []):
+            out.append(f"{ind}\tEnd Site")
+            out.append(f"{ind}\t{{")
+            out.append(f"{ind}\t\tOFFSET {vec(o)}")
+            out.append(f"{ind}\t}}")
+        out.append(f"{ind}}}")
+
+    emit(0, 0)
+    table = motion_to_channels(motion)
+    # reorder columns to the depth-first joint order
+    starts = np.cumsum([0] + [len(c) for c in sk.channels])
+    cols = np.concatenate(
+        [np.arange(starts[j], starts[j + 1]) for j in order] or [np.zeros(0, np.int64)]
+    ).astype(np.int64)
+    table = table[:, cols]
+    out.append("MOTION")
+    out.append(f"Frames: {motion.n_frames}")
+    out.append(f"Frame Time: {1.0 / motion.fps:.10g}")
+    row_fmt = " ".join([fmt] * table.shape[1])
+    body = "\n".join(row_fmt % tuple(r) for r in table) if table.shape[1] else ""
+    Path(path).write_text("\n".join(out) + "\n" + body + "\n", encoding="utf-8")

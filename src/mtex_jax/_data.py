@@ -1,0 +1,45 @@
+"""Embedded example data: the DeepMimic humanoid3d clips (zlib licence, see NOTICE)."""
+
+from __future__ import annotations
+
+from importlib import resources
+
+from ._deepmimic import parse_deepmimic
+from ._motion import Motion
+
+__all__ = ["example_names", "example_path", "load_example"]
+
+_PACKAGE = "mtex_jax.data.deepmimic"
+_PREFIX = "humanoid3d_"
+
+
+def example_names() -> list[str]:
+    """Names of the embedded example clips, e.g. ``["backflip", "cartwheel", ...]``."""
+    folder = resources.files(_PACKAGE)
+    names = [
+        f.name[len(_PREFIX) : -len(".txt")]
+        for f in folder.iterdir()
+        if f.name.startswith(_PREFIX) and f.name.endswith(".txt")
+    ]
+    return sorted(names)
+
+
+def example_path(name: str) -> str:
+    """A readable description of where an example lives (for messages)."""
+    return f"{_PACKAGE}/{_PREFIX}{name}.txt"
+
+
+def load_example(name: str) -> Motion:
+    """Load an embedded DeepMimic humanoid3d clip by name (see :func:`example_names`).
+
+    The clips ship inside the package (they work from an installed wheel); their zlib licence
+    notice is in ``mtex_jax/data/deepmimic/LICENSE-zlib.txt``.
+
+    Raises:
+        ValueError: unknown name (the message lists the available ones).
+    """
+    names = example_names()
+    if name not in names:
+        raise ValueError(f"unknown example {name!r}; available: {', '.join(names)}")
+    res = resources.files(_PACKAGE).joinpath(f"{_PREFIX}{name}.txt")
+    return parse_deepmimic(res.read_text(encoding="utf-8"), example_path(name))

@@ -1,0 +1,435 @@
+"""Observation vectors ``y_t`` (SPEC §1, MT §6.1) and their inverse.
+
+Raw channels of frame ``t`` (before dropping constants and z-scaling), with ``u`` the up axis
+and ``h0, h1`` the two horizontal axes in cyclic order after ``u``:
+
+====================  =====  ===================================================================
+channel               size   definition
+====================  =====  ===================================================================
+root.dh0, root.dh1    2      ``R(ψ_{t−1})⁻¹ (p_t − p_{t−1})`` along ``h0, h1`` (heading frame)
+root.height           1      ``p_t[u]`` (absolute)
+root.dyaw             1      ``wrap(ψ_t − ψ_{t−1})``, ``ψ`` = twist angle of the root about ``u``
+root.tilt             3      exp map of ``R(ψ_t)⁻¹ q_root,t`` (the root rotation without yaw)
+<joint>.r             3      exp map of the joint's local rotation, for every non-root joint
+<joint>.p             3      local translation, only if the motion has ``local_positions``
+====================  =====  ===================================================================
+
+Frame 0 has no predecessor: its displacement and yaw change repeat frame 1's (decoding ignores
+them). Exponential maps are made continuous in time (Grassia 1998): of the equivalent vectors
+``(θ + 2πn) v/θ`` the one nearest the previous frame's is kept. Channels whose standard
+deviation over the training set is ``≤ const_tol`` are dropped and restored as constants; the
+others are z-scored. ``decode ∘ encode`` is the identity up to float error.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from ._io import load_arrays_json, save_arrays_json
+from ._kinematics import forward_kinematics_arrays
+from ._motion import Motion
+from ._rotation import (
+    expmap_to_quat,
+    quat_conj,
+    quat_mul,
+    quat_rotate,
+    quat_to_expmap,
+    quat_twist,
+    wrap_angle,
+    yaw_quat,
+)
+from ._skeleton import Skeleton
+
+__all__ = ["FeatureMap", "load_feature_map", "raw_features", "unwrap_expmaps"]
+
+FORMAT_VERSION = 1
+
+
+def _axes(up: int) -> tuple[int, int, int]:
+    return up, (up + 1) % 3, (up + 2) % 3
+
+
+def _unit(up: int) -> np.ndarray:
+    e = np.zeros(3)
+    e[up] = 1.0
+    return e
+
+
+def unwrap_expmaps(v: Float[ArrayLike, "T *n 3"]) -> Float[Array, "T *n 3"]:
+    """Make a sequence of exponential maps continuous in time (``lax.scan`` over frames).
+
+    For each frame, of the equivalent vectors ``(θ + 2πn) v/θ`` (``n`` integer) the one nearest
+    the previous output is chosen: ``n = round((û·v_prev − θ) / 2π)``. At the identity
+    (``θ < 1e-9``) the previous frame's axis is used.
+    """
+    v = jnp.asarray(v)
+
+    def step(prev, cur):
+        th = jnp.linalg.norm(cur, axis=-1, keepdims=True)
+        pn = jnp.linalg.norm(prev, axis=-1, keepdims=True)
+        ok = th > 1e-9
+        # at the identity the axis is free: take the previous one (identity = 2πn about it)
+        u_prev = jnp.where(pn > 1e-9, prev / jnp.where(pn > 1e-9, pn, 1.0), 0.0)
+        u = jnp.where(ok, cur / jnp.where(ok, th, 1.0), u_prev)
+        th = jnp.where(ok, th, 0.0)
+        n = jnp.round((jnp.sum(u * prev, axis=-1, keepdims=True) - th) / (2 * jnp.pi))
+        out = (th + 2 * jnp.pi * n) * u
+        return out, out
+
+    _, out = jax.lax.scan(step, v[0], v)
+    return out
+
+
+def raw_features(
+    root_positions: Float[ArrayLike, "T 3"],
+    rotations: Float[ArrayLike, "T J 4"],
+    local_positions: Float[ArrayLike, "T J 3"] | None = None,
+    *,
+    up_axis: int = 1,
+) -> Float[Array, "T R"]:
+    """All raw observation channels of one clip (see the module docstring), ``(T, R)``."""
+    rotations = jnp.asarray(rotations)
+    p = jnp.asarray(root_positions, dtype=rotations.dtype)
+    t = rotations.shape[0]
+    u, h0, h1 = _axes(up_axis)
+    up = jnp.asarray(_unit(up_axis), dtype=rotations.dtype)
+    q_root = rotations[:, 0]
+    psi = quat_twist(q_root, up)
+    q_yaw = yaw_quat(psi, up)
+    tilt = quat_mul(quat_conj(q_yaw), q_root)
+    if t > 1:
+        dp = p[1:] - p[:-1]
+        local = quat_rotate(quat_conj(q_yaw[:-1]), dp)
+        dh = jnp.stack([local[:, h0], local[:, h1]], axis=-1)
+        dh = jnp.concatenate([dh[:1], dh], axis=0)
+        dyaw = wrap_angle(psi[1:] - psi[:-1])
+        dyaw = jnp.concatenate([dyaw[:1], dyaw], axis=0)
+    else:
+        dh = jnp.zeros((1, 2), rotations.dtype)
+        dyaw = jnp.zeros((1,), rotations.dtype)
+    rots = jnp.concatenate([tilt[:, None], rotations[:, 1:]], axis=1)  # (T, J, 4)
+    em = unwrap_expmaps(quat_to_expmap(rots))
+    parts = [dh, p[:, u : u + 1], dyaw[:, None], em.reshape(t, -1)]
+    if local_positions is not None:
+        lp = jnp.asarray(local_positions, dtype=rotations.dtype)
+        parts.append(lp[:, 1:].reshape(t, -1))
+    return jnp.concatenate(parts, axis=1)
+
+
+def _decode_raw(
+    raw: Float[Array, "T R"],
+    n_joints: int,
+    has_lp: bool,
+    up_axis: int,
+    start_position: Float[Array, 3],
+    start_heading: Float[Array, ""],
+) -> tuple[Array, Array, Array | None]:
+    t = raw.shape[0]
+    u, h0, h1 = _axes(up_axis)
+    up = jnp.asarray(_unit(up_axis), dtype=raw.dtype)
+    dh = raw[:, 0:2]
+    height = raw[:, 2]
+    dyaw = raw[:, 3]
+    em = raw[:, 4 : 4 + 3 * n_joints].reshape(t, n_joints, 3)
+    psi = start_heading + jnp.concatenate([jnp.zeros((1,), raw.dtype), jnp.cumsum(dyaw[1:])])
+    q_yaw = yaw_quat(psi, up)
+    q = expmap_to_quat(em)
+    q_root = quat_mul(q_yaw, q[:, 0])
+    rotations = q.at[:, 0].set(q_root)
+    local = jnp.zeros((t, 3), raw.dtype).at[:, h0].set(dh[:, 0]).at[:, h1].set(dh[:, 1])
+    world = quat_rotate(q_yaw[:-1], local[1:])  # displacement of frame s uses heading s−1
+    horiz = jnp.concatenate([jnp.zeros((1, 3), raw.dtype), jnp.cumsum(world, axis=0)], axis=0)
+    pos = horiz + start_position.at[u].set(0.0)
+    pos = pos.at[:, u].set(height)
+    lp = None
+    if has_lp:
+        lp_raw = raw[:, 4 + 3 * n_joints :].reshape(t, n_joints - 1, 3)
+        lp = jnp.concatenate([jnp.zeros((t, 1, 3), raw.dtype), lp_raw], axis=1)
+        lp = lp.at[:, 0].set(pos)
+    return pos, rotations, lp
+
+
+class FeatureMap(eqx.Module):
+    """Invertible map between a :class:`Motion` and observation vectors ``Y (T, D)``.
+
+    Build it with :meth:`fit` on training clips; then :meth:`encode` and :meth:`decode`.
+    ``decode`` is pure JAX and differentiable, so pose objectives on joint positions can be
+    differentiated with respect to ``Y``.
+
+    Attributes:
+        skeleton: the figure every clip shares (static).
+        fps: frame rate of the training clips (static).
+        has_local_positions: whether non-root joints carry position channels (static).
+        channel_names: names of the ``R`` raw channels (static).
+        active: indices of the ``D`` raw channels kept in ``Y`` (static).
+        offset: ``(R,)`` per raw channel: training mean (constants: their value).
+        scale: ``(R,)`` per raw channel: training standard deviation (constants: 1).
+    """
+
+    skeleton: Skeleton = eqx.field(static=True)
+    fps: float = eqx.field(static=True)
+    has_local_positions: bool = eqx.field(static=True)
+    channel_names: tuple[str, ...] = eqx.field(static=True)
+    active: tuple[int, ...] = eqx.field(static=True)
+    offset: Float[Array, " R"]
+    scale: Float[Array, " R"]
+
+    def __check_init__(self) -> None:
+        r = len(self.channel_names)
+        for name in ("offset", "scale"):
+            if np.shape(getattr(self, name)) != (r,):
+                raise ValueError(
+                    f"FeatureMap.{name} must have shape ({r},), got {np.shape(getattr(self, name))}"
+                )
+        if any(not 0 <= a < r for a in self.active) or len(set(self.active)) != len(self.active):
+            raise ValueError("FeatureMap.active must be distinct channel indices")
+
+    @property
+    def dim(self) -> int:
+        """Observation dimension ``D``."""
+        return len(self.active)
+
+    @property
+    def active_names(self) -> tuple[str, ...]:
+        return tuple(self.channel_names[a] for a in self.active)
+
+    # ------------------------------------------------------------------ fitting
+    @classmethod
+    def fit(
+        cls,
+        motions: Motion | Sequence[Motion],
+        *,
+        const_tol: float = 1e-6,
+        min_scale: float = 0.0,
+    ) -> FeatureMap:
+        """Fit channel statistics on training clips (same skeleton structure and frame rate).
+
+        Args:
+            motions: one clip or a list.
+            const_tol: channels whose standard deviation is at most this are constant.
+            min_scale: floor on the per-channel scale, ``scale = max(std, min_scale)``; the
+                default 0 is plain z-scoring. A floor (e.g. ``1e-2``) keeps nearly static
+                channels (a hand that barely turns) from amplifying capture noise.
+
+        Raises:
+            ValueError: empty list, different skeletons or frame rates, non-finite values.
+        """
+        if isinstance(motions, Motion):
+            motions = [motions]
+        motions = list(motions)
+        if not motions:
+            raise ValueError("FeatureMap.fit: no motions given")
+        first = motions[0]
+        for i, m in enumerate(motions):
+            if not isinstance(m, Motion):
+                raise TypeError(f"FeatureMap.fit: item {i} is {type(m).__name__}, not a Motion")
+            if not m.skeleton.same_structure(first.skeleton):
+                raise ValueError(f"FeatureMap.fit: motion {i} has a different skeleton")
+            if m.fps != first.fps:
+                raise ValueError(
+                    f"FeatureMap.fit: motion {i} has fps {m.fps:g}, motion 0 has {first.fps:g}; "
+                    "resample with motion.resample(fps) first"
+                )
+            if (m.local_positions is None) != (first.local_positions is None):
+                raise ValueError("FeatureMap.fit: local_positions present in some motions only")
+        raws = [np.asarray(_raw(m)) for m in motions]
+        allr = np.concatenate(raws, axis=0)
+        if not np.all(np.isfinite(allr)):
+            raise ValueError("FeatureMap.fit: non-finite values in the motions")
+        mean = allr.mean(axis=0)
+        std = allr.std(axis=0)
+        active = tuple(int(i) for i in np.nonzero(std > const_tol)[0])
+        scale = np.where(std > const_tol, np.maximum(std, min_scale), 1.0)
+        names = _channel_names(first.skeleton, first.local_positions is not None)
+        return cls(
+            skeleton=first.skeleton,
+            fps=float(first.fps),
+            has_local_positions=first.local_positions is not None,
+            channel_names=names,
+            active=active,
+            offset=np.asarray(mean),  # type: ignore[arg-type]
+            scale=np.asarray(scale),  # type: ignore[arg-type]
+        )
+
+    # ------------------------------------------------------------------ encode / decode
+    def encode(self, motion: Motion) -> Float[Array, "T D"]:
+        """Observation vectors ``Y (T, D)`` of a clip (z-scored active channels)."""
+        self._check_motion(motion)
+        return _encode(self, motion)
+
+    def start_of(self, motion: Motion) -> tuple[np.ndarray, float]:
+        """Root position ``(3,)`` and heading (radians) of a clip's first frame.
+
+        ``decode(encode(m), *fm.start_of(m))`` reproduces ``m``.
+        """
+        up = _unit(self.skeleton.up_axis)
+        q0 = np.asarray(motion.rotations[0, 0], dtype=np.float64)
+        heading = float(2.0 * np.arctan2(np.dot(q0[1:], up), q0[0]))
+        heading = float((heading + np.pi) % (2 * np.pi) - np.pi)
+        return np.asarray(motion.root_positions[0], dtype=np.float64), heading
+
+    def decode(
+        self,
+        Y: Float[ArrayLike, "T D"],
+        start_position: Float[ArrayLike, 3] | None = None,
+        start_heading: float | Float[ArrayLike, ""] | None = None,
+    ) -> Motion:
+        """Motion from observation vectors (inverse of :meth:`encode`).
+
+        The root yaw and horizontal displacement are integrated from ``start_heading``
+        (radians about the up axis, default 0) and ``start_position`` (its up component is
+        ignored; the height comes from ``Y``; default the origin). Pure JAX, differentiable.
+
+        Args:
+            Y: ``(T, D)`` observations.
+            start_position: ``(3,)`` root position of frame 0.
+            start_heading: yaw of frame 0.
+
+        Returns:
+            a :class:`Motion` with JAX arrays on this map's skeleton.
+        """
+        Y = jnp.asarray(Y)
+        if Y.ndim != 2 or Y.shape[1] != self.dim:
+            raise ValueError(f"decode: Y must have shape (T, {self.dim}), got {Y.shape}")
+        if Y.shape[0] < 1:
+            raise ValueError("decode: Y has no frames")
+        dtype = Y.dtype if jnp.issubdtype(Y.dtype, jnp.floating) else jnp.result_type(float)
+        sp = jnp.zeros(3, dtype) if start_position is None else jnp.asarray(start_position, dtype)
+        if sp.shape != (3,):
+            raise ValueError(f"decode: start_position must have shape (3,), got {sp.shape}")
+        sh = jnp.zeros((), dtype) if start_heading is None else jnp.asarray(start_heading, dtype)
+        if sh.shape != ():
+            raise ValueError(f"decode: start_heading must be a scalar, got shape {sh.shape}")
+        pos, rot, lp = _decode(self, Y.astype(dtype), sp, sh)
+        return Motion(self.skeleton, self.fps, pos, rot, lp)
+
+    def joint_positions(
+        self,
+        Y: Float[ArrayLike, "T D"],
+        start_position: Float[ArrayLike, 3] | None = None,
+        start_heading: float | Float[ArrayLike, ""] | None = None,
+        *,
+        end_sites: bool = False,
+    ) -> Float[Array, "T J 3"]:
+        """World joint positions straight from ``Y`` (``decode`` then forward kinematics)."""
+        m = self.decode(Y, start_position, start_heading)
+        return forward_kinematics_arrays(
+            m.skeleton, m.root_positions, m.rotations, m.local_positions, end_sites=end_sites
+        )
+
+    def _check_motion(self, motion: Motion) -> None:
+        if not isinstance(motion, Motion):
+            raise TypeError(f"expected a Motion, got {type(motion).__name__}")
+        if not motion.skeleton.same_structure(self.skeleton):
+            raise ValueError("motion's skeleton differs from the feature map's skeleton")
+        if motion.fps != self.fps:
+            raise ValueError(
+                f"motion has fps {motion.fps:g}, the feature map {self.fps:g}; "
+                f"use motion.resample({self.fps:g})"
+            )
+        if (motion.local_positions is not None) != self.has_local_positions:
+            raise ValueError("motion and feature map disagree on local_positions")
+
+    # ------------------------------------------------------------------ serialisation
+    def to_arrays_json(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Plain arrays and a JSON-serialisable dict that describe this map."""
+        arrays = {"offset": np.asarray(self.offset), "scale": np.asarray(self.scale)}
+        meta = {
+            "kind": "mtex_jax.FeatureMap",
+            "format_version": FORMAT_VERSION,
+            "skeleton": self.skeleton.to_json_dict(),
+            "fps": self.fps,
+            "has_local_positions": self.has_local_positions,
+            "channel_names": list(self.channel_names),
+            "active": list(self.active),
+        }
+        return arrays, meta
+
+    @classmethod
+    def from_arrays_json(cls, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> FeatureMap:
+        """Inverse of :meth:`to_arrays_json` (validates versions and shapes)."""
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise ValueError(
+                f"FeatureMap format version {meta.get('format_version')!r} is not supported "
+                f"(expected {FORMAT_VERSION})"
+            )
+        try:
+            return cls(
+                skeleton=Skeleton.from_json_dict(meta["skeleton"]),
+                fps=float(meta["fps"]),
+                has_local_positions=bool(meta["has_local_positions"]),
+                channel_names=tuple(str(c) for c in meta["channel_names"]),
+                active=tuple(int(a) for a in meta["active"]),
+                offset=np.asarray(arrays["offset"], dtype=np.float64),  # type: ignore[arg-type]
+                scale=np.asarray(arrays["scale"], dtype=np.float64),  # type: ignore[arg-type]
+            )
+        except KeyError as e:
+            raise ValueError(f"FeatureMap description lacks {e}") from None
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write this map to a ``.npz`` file (arrays + JSON metadata, no pickle)."""
+        arrays, meta = self.to_arrays_json()
+        save_arrays_json(path, arrays, meta)
+
+
+def load_feature_map(path: str | os.PathLike[str]) -> FeatureMap:
+    """Read a :class:`FeatureMap` written by :meth:`FeatureMap.save`."""
+    arrays, meta = load_arrays_json(path, kind="mtex_jax.FeatureMap", required=("offset", "scale"))
+    try:
+        return FeatureMap.from_arrays_json(arrays, meta)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
+
+
+def _channel_names(sk: Skeleton, has_lp: bool) -> tuple[str, ...]:
+    ax = "xyz"
+    u, h0, h1 = _axes(sk.up_axis)
+    names = [f"root.d{ax[h0]}", f"root.d{ax[h1]}", f"root.{ax[u]}", "root.dyaw"]
+    names += [f"root.tilt.{c}" for c in ax]
+    for j in range(1, sk.n_joints):
+        names += [f"{sk.names[j]}.r{c}" for c in ax]
+    if has_lp:
+        for j in range(1, sk.n_joints):
+            names += [f"{sk.names[j]}.p{c}" for c in ax]
+    return tuple(names)
+
+
+def _raw(m: Motion) -> Array:
+    return _raw_jit(m.skeleton.up_axis, m.root_positions, m.rotations, m.local_positions)
+
+
+@eqx.filter_jit
+def _raw_jit(up_axis: int, root_positions, rotations, local_positions) -> Array:
+    return raw_features(root_positions, rotations, local_positions, up_axis=up_axis)
+
+
+@eqx.filter_jit
+def _encode(fm: FeatureMap, motion: Motion) -> Array:
+    raw = raw_features(
+        motion.root_positions, motion.rotations, motion.local_positions, up_axis=fm.skeleton.up_axis
+    )
+    act = np.asarray(fm.active, dtype=np.int64)
+    off = jnp.asarray(fm.offset, raw.dtype)[act]
+    sc = jnp.asarray(fm.scale, raw.dtype)[act]
+    return (raw[:, act] - off) / sc
+
+
+@eqx.filter_jit
+def _decode(fm: FeatureMap, Y: Array, sp: Array, sh: Array):
+    t = Y.shape[0]
+    act = np.asarray(fm.active, dtype=np.int64)
+    off = jnp.asarray(fm.offset, Y.dtype)
+    sc = jnp.asarray(fm.scale, Y.dtype)
+    raw = jnp.broadcast_to(off, (t, off.shape[0]))
+    raw = raw.at[:, act].set(Y * sc[act] + off[act])
+    return _decode_raw(
+        raw, fm.skeleton.n_joints, fm.has_local_positions, fm.skeleton.up_axis, sp, sh
+    )

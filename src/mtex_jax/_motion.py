@@ -1,0 +1,187 @@
+"""`Motion`: a skeleton plus per-frame root positions and local joint rotations."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._skeleton import Skeleton
+
+__all__ = ["Motion", "concatenate_motions", "slerp"]
+
+ArrayF = Float[Array, "..."] | Float[np.ndarray, "..."]
+
+
+class Motion(eqx.Module):
+    """A motion clip: skeleton, frame rate, root trajectory and local joint rotations.
+
+    Rotations are unit quaternions ``(w, x, y, z)``, local to the parent joint (for the root:
+    relative to the world). A joint's world position is
+    ``p_j = p_parent + R_parent_world @ t_j`` with ``t_j`` the skeleton offset (or
+    ``local_positions[:, j]`` where a non-root joint has BVH position channels), and
+    ``R_j_world = R_parent_world @ R(rotations[:, j])``. The root is at ``root_positions``.
+
+    Arrays may be NumPy (as returned by the readers, always float64) or JAX arrays (as
+    returned by differentiable decoders); every function accepts either.
+
+    Attributes:
+        skeleton: the figure (static).
+        fps: frames per second (static).
+        root_positions: ``(T, 3)`` world position of the root joint.
+        rotations: ``(T, J, 4)`` local unit quaternions, w first.
+        local_positions: ``(T, J, 3)`` per-frame local translations, or ``None`` when no
+            non-root joint has position channels (then the skeleton offsets are used).
+    """
+
+    skeleton: Skeleton = eqx.field(static=True)
+    fps: float = eqx.field(static=True)
+    root_positions: ArrayF
+    rotations: ArrayF
+    local_positions: ArrayF | None = None
+
+    def __check_init__(self) -> None:
+        if not isinstance(self.skeleton, Skeleton):
+            raise TypeError(
+                f"Motion.skeleton must be a Skeleton, got {type(self.skeleton).__name__}"
+            )
+        if not (isinstance(self.fps, int | float) and np.isfinite(self.fps) and self.fps > 0):
+            raise ValueError(f"Motion.fps must be a positive finite number, got {self.fps!r}")
+        j = self.skeleton.n_joints
+        rs = np.shape(self.root_positions)
+        qs = np.shape(self.rotations)
+        if len(rs) != 2 or rs[1] != 3:
+            raise ValueError(f"Motion.root_positions must have shape (T, 3), got {rs}")
+        if len(qs) != 3 or qs[1:] != (j, 4):
+            raise ValueError(f"Motion.rotations must have shape (T, {j}, 4), got {qs}")
+        if qs[0] != rs[0]:
+            raise ValueError(f"Motion.rotations has {qs[0]} frames but root_positions has {rs[0]}")
+        if self.local_positions is not None:
+            ls = np.shape(self.local_positions)
+            if ls != (rs[0], j, 3):
+                raise ValueError(
+                    f"Motion.local_positions must have shape ({rs[0]}, {j}, 3), got {ls}"
+                )
+
+    # ------------------------------------------------------------------ basic facts
+    @property
+    def n_frames(self) -> int:
+        return int(np.shape(self.root_positions)[0])
+
+    @property
+    def n_joints(self) -> int:
+        return self.skeleton.n_joints
+
+    @property
+    def duration(self) -> float:
+        """Seconds from the first to the last frame, ``(T − 1) / fps``."""
+        return max(self.n_frames - 1, 0) / self.fps
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def __getitem__(self, frames: slice | Sequence[int] | np.ndarray) -> Motion:
+        """Select frames (a slice or an index array); an integer is rejected (use ``m[i:i+1]``)."""
+        if isinstance(frames, int | np.integer):
+            raise TypeError("index a Motion with a slice or an index array, e.g. m[i:i + 1]")
+        if isinstance(frames, slice) and frames.step is not None and frames.step != 1:
+            fps = self.fps / abs(frames.step)
+        else:
+            fps = self.fps
+        idx = frames if isinstance(frames, slice) else np.asarray(frames)
+        lp = None if self.local_positions is None else self.local_positions[idx]
+        return Motion(self.skeleton, fps, self.root_positions[idx], self.rotations[idx], lp)
+
+    def numpy(self) -> Motion:
+        """The same motion with NumPy arrays (copies device arrays to host)."""
+        lp = None if self.local_positions is None else np.asarray(self.local_positions)
+        return Motion(
+            self.skeleton, self.fps, np.asarray(self.root_positions), np.asarray(self.rotations), lp
+        )
+
+    def with_skeleton(self, skeleton: Skeleton) -> Motion:
+        """The same frames on another skeleton of identical structure (e.g. rescaled offsets)."""
+        if skeleton.n_joints != self.skeleton.n_joints:
+            raise ValueError(
+                f"skeleton has {skeleton.n_joints} joints, motion has {self.skeleton.n_joints}"
+            )
+        return Motion(skeleton, self.fps, self.root_positions, self.rotations, self.local_positions)
+
+    # ------------------------------------------------------------------ resampling
+    def resample(self, fps: float) -> Motion:
+        """Resample to another frame rate over the same time span.
+
+        Root positions (and local positions) are interpolated linearly; rotations by spherical
+        linear interpolation (slerp) between the two neighbouring frames. The new clip has
+        ``floor(duration · fps) + 1`` frames starting at the same time.
+        """
+        if not (np.isfinite(fps) and fps > 0):
+            raise ValueError(f"resample: fps must be positive and finite, got {fps!r}")
+        m = self.numpy()
+        t_old = m.n_frames
+        if t_old == 1:
+            return Motion(m.skeleton, float(fps), m.root_positions, m.rotations, m.local_positions)
+        n_new = int(np.floor(m.duration * fps + 1e-9)) + 1
+        u = np.arange(n_new) * (self.fps / fps)
+        i0 = np.clip(np.floor(u).astype(np.int64), 0, t_old - 2)
+        frac = np.clip(u - i0, 0.0, 1.0)
+        lin = lambda a: a[i0] + (a[i0 + 1] - a[i0]) * frac.reshape((-1,) + (1,) * (a.ndim - 1))
+        q = np.asarray(m.rotations)
+        rot = slerp(q[i0], q[i0 + 1], frac[:, None])
+        lp = None if m.local_positions is None else lin(m.local_positions)
+        return Motion(m.skeleton, float(fps), lin(m.root_positions), rot, lp)
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Spherical linear interpolation of unit quaternions (NumPy, float64).
+
+    Args:
+        q0, q1: ``(..., 4)`` unit quaternions.
+        u: interpolation fractions in ``[0, 1]``, broadcastable to ``q0.shape[:-1]``.
+
+    Returns:
+        ``(..., 4)``: ``q0 (q0* q1)^u`` along the shorter arc (``q1`` is negated if needed).
+    """
+    q0 = np.asarray(q0, dtype=np.float64)
+    q1 = np.asarray(q1, dtype=np.float64)
+    u = np.asarray(u, dtype=np.float64)[..., None]
+    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
+    q1 = np.where(dot < 0, -q1, q1)
+    dot = np.clip(np.abs(dot), -1.0, 1.0)
+    theta = np.arccos(dot)
+    sin_t = np.sin(theta)
+    small = sin_t < 1e-9
+    safe = np.where(small, 1.0, sin_t)
+    w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * theta) / safe)
+    w1 = np.where(small, u, np.sin(u * theta) / safe)
+    out = w0 * q0 + w1 * q1
+    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+
+
+def concatenate_motions(motions: Sequence[Motion]) -> Motion:
+    """Join clips of one skeleton and frame rate end to end (frames are appended as they are)."""
+    if not motions:
+        raise ValueError("concatenate_motions: empty list")
+    first = motions[0]
+    for i, m in enumerate(motions[1:], start=1):
+        if not m.skeleton.same_structure(first.skeleton):
+            raise ValueError(f"concatenate_motions: motion {i} has a different skeleton")
+        if m.fps != first.fps:
+            raise ValueError(
+                f"concatenate_motions: motion {i} has fps {m.fps}, motion 0 has {first.fps}; "
+                "resample first"
+            )
+        if (m.local_positions is None) != (first.local_positions is None):
+            raise ValueError("concatenate_motions: local_positions present in some motions only")
+    lp = None
+    if first.local_positions is not None:
+        lp = np.concatenate([np.asarray(m.local_positions) for m in motions])
+    return Motion(
+        first.skeleton,
+        first.fps,
+        np.concatenate([np.asarray(m.root_positions) for m in motions]),
+        np.concatenate([np.asarray(m.rotations) for m in motions]),
+        lp,
+    )

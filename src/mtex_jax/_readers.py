@@ -1,0 +1,38 @@
+"""One entry point for every supported motion source (files and embedded examples)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ._bvh import read_bvh
+from ._data import load_example
+from ._deepmimic import read_deepmimic
+from ._motion import Motion
+
+__all__ = ["read_motion"]
+
+
+def read_motion(source: str | os.PathLike[str]) -> Motion:
+    """Read a motion from a ``.bvh`` file, a DeepMimic JSON file, or ``example:NAME``.
+
+    Raises:
+        ValueError: unknown example, missing file, or malformed content (with file and line).
+    """
+    s = str(source)
+    if s.startswith("example:"):
+        return load_example(s[len("example:") :])
+    p = Path(s)
+    if not p.exists():
+        raise ValueError(f"{p}: no such file")
+    if p.is_dir():
+        raise ValueError(f"{p}: is a directory, expected a motion file")
+    if p.suffix.lower() == ".bvh":
+        return read_bvh(p)
+    with open(p, "rb") as fh:
+        head = fh.read(64).lstrip()
+    if head.startswith(b"{"):
+        return read_deepmimic(p)
+    if head.upper().startswith(b"HIERARCHY"):
+        return read_bvh(p)
+    raise ValueError(f"{p}: unknown motion format (expected BVH or DeepMimic JSON)")

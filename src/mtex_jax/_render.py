@@ -1,0 +1,671 @@
+"""Stick-figure rendering of a :class:`Motion`: animated GIFs and key-frame filmstrips.
+
+Drawing uses matplotlib's object API on an Agg canvas (no ``pyplot``, no global backend
+change) and Pillow writes the files; both are optional dependencies, imported only when a
+function here is called (``pip install "mtex_jax[plot]"``).
+
+The skeleton's up axis becomes the vertical axis of the plot through a proper rotation, so the
+figure is never mirrored: z up is drawn as is, y up as ``(x, -z, y)``, x up as ``(y, z, x)``.
+Bones on the figure's left are blue, on its right red (from the joint names: ``left…``,
+``l_…``, ``lShldr``, ``…_l``), the rest dark grey.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeGuard
+
+import numpy as np
+
+from ._kinematics import forward_kinematics
+from ._motion import Motion
+
+if TYPE_CHECKING:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d.axes3d import Axes3D
+
+__all__ = ["render_filmstrip", "render_gif"]
+
+_PLOT_EXTRA = 'install them with: pip install "mtex_jax[plot]"'
+
+#: GIF players (browsers in particular) slow down frames shorter than 20 ms.
+_MAX_GIF_FPS = 50.0
+
+#: World → plot coordinates (rows: plot x, y, z), a rotation taking ``up_axis`` to plot z.
+_TO_PLOT = {
+    0: np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+    1: np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    2: np.eye(3),
+}
+
+_LEFT_COLOUR = "#1f5fbf"
+_RIGHT_COLOUR = "#d62728"
+_CENTRE_COLOUR = "#3a3a3a"
+_TRAJECTORY_COLOURS = ("#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf")
+_GROUND_FACE = "#e6e6e6"
+_GROUND_GRID = "#b4b4b4"
+
+
+# ---------------------------------------------------------------------------------------------
+# Checks and preparation (no matplotlib needed)
+# ---------------------------------------------------------------------------------------------
+def _require_plotting(fn: str) -> None:
+    """Raise a helpful ImportError when matplotlib or Pillow is missing."""
+    missing = []
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        missing.append("matplotlib")
+    try:
+        import PIL  # noqa: F401
+    except ImportError:
+        missing.append("Pillow")
+    if missing:
+        raise ImportError(f"{fn} needs {' and '.join(missing)}; {_PLOT_EXTRA}")
+
+
+def _check_motion(motion: Any, fn: str) -> Motion:
+    if not isinstance(motion, Motion):
+        raise TypeError(f"{fn} expects a Motion, got {type(motion).__name__}")
+    if motion.n_frames == 0:
+        raise ValueError(f"{fn}: the motion has no frames")
+    return motion
+
+
+def _check_path(path: str | os.PathLike[str], fn: str) -> Path:
+    p = Path(path)
+    if p.exists() and p.is_dir():
+        raise ValueError(f"{fn}: {p} is a directory, expected a file name")
+    parent = p.parent
+    if not parent.is_dir():
+        raise ValueError(f"{fn}: folder {parent} does not exist (create it first)")
+    return p
+
+
+def _is_int(x: object) -> TypeGuard[int | np.integer]:
+    return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
+
+
+def _positive(x: Any, name: str, fn: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, int | float | np.integer | np.floating):
+        raise ValueError(f"{fn}: {name} must be a positive number, got {x!r}")
+    v = float(x)
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{fn}: {name} must be positive and finite, got {x!r}")
+    return v
+
+
+def _plot_positions(motion: Motion, fn: str) -> np.ndarray:
+    """World positions of joints then end sites, ``(T, J + E, 3)``, in plot coordinates."""
+    pos = np.asarray(forward_kinematics(motion, end_sites=True), dtype=np.float64)
+    bad = ~np.isfinite(pos).all(axis=(1, 2))
+    if bad.any():
+        t = int(np.argmax(bad))
+        j = int(np.argmax(~np.isfinite(pos[t]).all(axis=1)))
+        raise ValueError(
+            f"{fn}: non-finite joint positions, first at frame {t} (point {_point_name(motion, j)})"
+        )
+    return pos @ _TO_PLOT[motion.skeleton.up_axis].T
+
+
+def _point_name(motion: Motion, i: int) -> str:
+    sk = motion.skeleton
+    if i < sk.n_joints:
+        return repr(sk.names[i])
+    return f"end site of {sk.names[sk.end_sites[i - sk.n_joints][0]]!r}"
+
+
+def _side(name: str) -> int:
+    """-1 for a joint on the figure's left, +1 on its right, 0 otherwise (from its name)."""
+    low = name.lower()
+    for sign, word, letter in ((-1, "left", "l"), (1, "right", "r")):
+        if low.startswith(word) or low.startswith((f"{letter}_", f"{letter}.", f"{letter}-")):
+            return sign
+        if len(name) > 1 and name[0].lower() == letter and name[1].isupper():
+            return sign
+        if low.endswith((f"_{letter}", f".{letter}", f"-{letter}")):
+            return sign
+    return 0
+
+
+def _dot_joints(motion: Motion) -> np.ndarray:
+    """Joints marked with a dot: those carrying a chain of at least 8 % of the figure's size.
+
+    This leaves out fingers, toes and eyes, whose dots would blot out the hands and head.
+    """
+    sk = motion.skeleton
+    lengths = np.linalg.norm(sk.offsets_array, axis=1)
+    reach = np.zeros(sk.n_joints)  # longest chain below each joint
+    for p, off in sk.end_sites:
+        reach[p] = max(reach[p], float(np.linalg.norm(off)))
+    for j in range(sk.n_joints - 1, 0, -1):
+        p = sk.parents[j]
+        reach[p] = max(reach[p], reach[j] + lengths[j])
+    return np.nonzero(reach >= 0.08 * sk.size)[0]
+
+
+def _bones(motion: Motion, end_sites: bool) -> tuple[np.ndarray, list[str]]:
+    """Parent/child point index pairs ``(B, 2)`` and a colour per bone."""
+    sk = motion.skeleton
+    pairs: list[tuple[int, int]] = []
+    sides: list[int] = []
+    for j, p in enumerate(sk.parents):
+        if p >= 0:
+            pairs.append((p, j))
+            sides.append(_side(sk.names[j]) or _side(sk.names[p]))
+    if end_sites:
+        for e, (p, _) in enumerate(sk.end_sites):
+            pairs.append((p, sk.n_joints + e))
+            sides.append(_side(sk.names[p]))
+    colours = [{-1: _LEFT_COLOUR, 1: _RIGHT_COLOUR, 0: _CENTRE_COLOUR}[s] for s in sides]
+    return np.asarray(pairs, dtype=np.int64).reshape(-1, 2), colours
+
+
+def _trajectory_points(
+    trajectories: str | int | Sequence[str | int] | None, motion: Motion, fn: str
+) -> list[tuple[int, str]]:
+    """Resolve joint names / point indices to ``(point index, label)`` pairs (deduplicated)."""
+    if trajectories is None:
+        return []
+    sk = motion.skeleton
+    n_points = sk.n_joints + len(sk.end_sites)
+    items: list[object]
+    if isinstance(trajectories, str) or _is_int(trajectories):
+        items = [trajectories]
+    elif isinstance(trajectories, Sequence | np.ndarray):
+        items = list(trajectories)
+    else:
+        raise ValueError(f"{fn}: trajectories must be joint names or indices, got {trajectories!r}")
+    out: list[tuple[int, str]] = []
+    for item in items:
+        if isinstance(item, str):
+            if item not in sk.names:
+                raise ValueError(
+                    f"{fn}: unknown joint {item!r} in trajectories; valid names: "
+                    f"{', '.join(sk.names)}"
+                )
+            idx = sk.names.index(item)
+        elif _is_int(item):
+            idx = int(item)
+            if not 0 <= idx < n_points:
+                raise ValueError(
+                    f"{fn}: trajectory index {idx} is out of range; use 0..{sk.n_joints - 1} for "
+                    f"joints or {sk.n_joints}..{n_points - 1} for end sites"
+                    if n_points > sk.n_joints
+                    else f"{fn}: trajectory index {idx} is out of range 0..{n_points - 1}"
+                )
+        else:
+            raise ValueError(
+                f"{fn}: trajectories must hold joint names or integer indices, got {item!r}"
+            )
+        if idx not in [i for i, _ in out]:
+            label = sk.names[idx] if idx < sk.n_joints else f"{_point_name(motion, idx)[1:-1]}·end"
+            out.append((idx, label))
+    return out
+
+
+def _nice_step(span: float) -> float:
+    """A 1-2-5 × 10^k grid spacing giving about six cells over ``span``."""
+    raw = max(span, 1e-12) / 6.0
+    base = 10.0 ** math.floor(math.log10(raw))
+    for m in (1.0, 2.0, 5.0, 10.0):
+        if raw <= m * base * 1.0001:
+            return m * base
+    return 10.0 * base  # pragma: no cover - the loop always returns
+
+
+@dataclass(frozen=True)
+class _Box:
+    """An axis-aligned cube in plot coordinates: centre and half side."""
+
+    centre: tuple[float, float, float]
+    half: float
+
+    @property
+    def lo(self) -> np.ndarray:
+        return np.asarray(self.centre) - self.half
+
+    @property
+    def hi(self) -> np.ndarray:
+        return np.asarray(self.centre) + self.half
+
+
+def _with_nan_outside(path: np.ndarray, box: _Box) -> np.ndarray:
+    """Copy of a ``(K, 3)`` path with points outside the box replaced by NaN (a line break)."""
+    out = path.copy()
+    outside = ((path < box.lo - 1e-9) | (path > box.hi + 1e-9)).any(axis=1)
+    out[outside] = np.nan
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# One 3-D panel: axes, ground, bones, joints, trajectories — updated in place per frame
+# ---------------------------------------------------------------------------------------------
+class _Panel:
+    def __init__(
+        self,
+        fig: Figure,
+        rect: tuple[float, float, float, float],
+        *,
+        box: _Box,
+        ground: float,
+        step: float,
+        bones: np.ndarray,
+        colours: list[str],
+        joints: np.ndarray,
+        trajectories: list[tuple[int, str]],
+        elev: float,
+        azim: float,
+        linewidth: float,
+    ) -> None:
+        from mpl_toolkits.mplot3d.art3d import Line3D, Line3DCollection, Poly3DCollection
+        from mpl_toolkits.mplot3d.axes3d import Axes3D
+
+        ax = fig.add_axes(rect, projection="3d")
+        assert isinstance(ax, Axes3D)
+        self.ax: Axes3D = ax
+        self.box = box
+        lo, hi = box.lo, box.hi
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_zlim(lo[2], hi[2])
+        # (matplotlib's stub types `zoom` as int; any positive float works)
+        ax.set_box_aspect((1.0, 1.0, 1.0), zoom=1.15)  # pyright: ignore[reportArgumentType]
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_axis_off()
+        ax.computed_zorder = False  # ground below, then trajectories, bones, joints
+        ax.patch.set_alpha(0.0)
+
+        # Ground: a light square at the ground height and a grid on world multiples of `step`.
+        x0, y0, x1, y1 = lo[0], lo[1], hi[0], hi[1]
+        square = [[(x0, y0, ground), (x1, y0, ground), (x1, y1, ground), (x0, y1, ground)]]
+        ax.add_collection3d(
+            Poly3DCollection(square, facecolors=_GROUND_FACE, edgecolors="none", zorder=0)
+        )
+        segs = []
+        for x in np.arange(math.ceil(x0 / step), math.floor(x1 / step) + 1) * step:
+            segs.append([(x, y0, ground), (x, y1, ground)])
+        for y in np.arange(math.ceil(y0 / step), math.floor(y1 / step) + 1) * step:
+            segs.append([(x0, y, ground), (x1, y, ground)])
+        ax.add_collection3d(Line3DCollection(segs, colors=_GROUND_GRID, linewidths=0.6, zorder=1))
+
+        self.trajectories = trajectories
+        self.traj_lines: list[Line3D] = []
+        for k, (_, label) in enumerate(trajectories):
+            (line,) = ax.plot(
+                [],
+                [],
+                [],
+                color=_TRAJECTORY_COLOURS[k % len(_TRAJECTORY_COLOURS)],
+                linewidth=0.9 * linewidth,
+                alpha=0.9,
+                label=label,
+                zorder=2,
+            )
+            assert isinstance(line, Line3D)
+            self.traj_lines.append(line)
+        self.bones = bones
+        self.bone_lines = Line3DCollection(
+            np.zeros((len(bones), 2, 3)),
+            colors=colours,
+            linewidths=linewidth,
+            capstyle="round",
+            zorder=3,
+        )
+        ax.add_collection3d(self.bone_lines)
+        self.joints = joints
+        (dots,) = ax.plot(
+            [],
+            [],
+            [],
+            linestyle="none",
+            marker="o",
+            markersize=1.1 * linewidth,
+            color="#111111",
+            zorder=4,
+        )
+        assert isinstance(dots, Line3D)
+        self.dots = dots
+
+    def show(self, frame: np.ndarray, paths: Sequence[np.ndarray], clip: bool) -> None:
+        """Pose the figure: ``frame`` is ``(P, 3)``, ``paths`` one ``(K, 3)`` array a trajectory."""
+        self.bone_lines.set_segments(list(frame[self.bones]))
+        j = frame[self.joints]
+        self.dots.set_data_3d(j[:, 0], j[:, 1], j[:, 2])
+        for line, path in zip(self.traj_lines, paths, strict=True):
+            if clip:
+                path = _with_nan_outside(path, self.box)
+            line.set_data_3d(path[:, 0], path[:, 1], path[:, 2])
+
+
+def _figure(size: tuple[float, float], dpi: float) -> tuple[Figure, FigureCanvasAgg]:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=size, dpi=dpi, facecolor="white")
+    canvas = FigureCanvasAgg(fig)
+    return fig, canvas
+
+
+def _ground(pos: np.ndarray) -> float:
+    """Ground height: the lowest point reached by any joint or end site."""
+    return float(pos[..., 2].min())
+
+
+# ---------------------------------------------------------------------------------------------
+# GIF
+# ---------------------------------------------------------------------------------------------
+def _gif_frame_indices(start: int, stop: int, motion_fps: float, fps: float) -> np.ndarray:
+    """Motion frames shown at ``fps``: the nearest frame to each output time ``k / fps``."""
+    ratio = motion_fps / fps
+    n_out = math.floor((stop - 1 - start) / ratio + 1e-9) + 1
+    idx = start + np.rint(np.arange(n_out) * ratio).astype(np.int64)
+    return np.minimum(idx, stop - 1)
+
+
+def _gif_durations(n: int, fps: float) -> list[int]:
+    """Per-frame durations in ms, multiples of 10 ms (the GIF unit) averaging ``1000 / fps``.
+
+    Frame ``k`` ends at ``round((k + 1) · 100 / fps)`` centiseconds, so rounding errors do not
+    accumulate: at 30 fps the durations run 30, 40, 30, 30, 40, 30, … ms.
+    """
+    ends = np.rint(np.arange(1, n + 1) * 100.0 / fps).astype(np.int64)
+    cs = np.diff(ends, prepend=0)
+    return [int(10 * max(c, 1)) for c in cs]
+
+
+def render_gif(
+    motion: Motion,
+    path: str | os.PathLike[str],
+    *,
+    fps: float | None = None,
+    trajectories: str | int | Sequence[str | int] | None = None,
+    end_sites: bool = True,
+    frame_range: tuple[int, int] | None = None,
+    size: tuple[float, float] = (5.0, 5.0),
+    dpi: float = 80,
+    elev: float = 15.0,
+    azim: float = -60.0,
+    title: str | None = None,
+) -> Path:
+    """Write a looping animated GIF of the motion as a 3-D stick figure.
+
+    Bones are parent→child segments (left side blue, right side red); the skeleton's up axis is
+    drawn vertical. The axes are fixed over the rendered frames: a cube around the figure's
+    whole trajectory with equal aspect, so the figure is never rescaled between frames. A light
+    ground square with a 1-2-5 grid is drawn at the lowest point the figure reaches (joints and
+    end sites). The frame number and time are shown in the top-left corner.
+
+    Args:
+        motion: the clip to draw.
+        path: output file (written as GIF whatever its suffix); its folder must exist.
+        fps: playback rate. Frames are picked from the motion at this rate (the nearest frame to
+            each time ``k / fps``), so the animation plays in real time. Default
+            ``min(motion.fps, 30)``; must be at most ``motion.fps`` and at most 50 (GIF frame
+            durations are multiples of 10 ms, and players slow down frames under 20 ms). Frame
+            durations alternate between neighbouring multiples of 10 ms so that they average
+            exactly ``1000 / fps`` ms.
+        trajectories: joint names (or point indices: ``0..J-1`` joints, ``J..J+E-1`` end sites
+            in ``skeleton.end_sites`` order) whose paths are drawn as lines, up to the current
+            frame (as in the Motion Texture paper's figures).
+        end_sites: draw the end-site segments (head top, hands, toes, …).
+        frame_range: ``(start, stop)`` motion frames to render, ``stop`` exclusive; default the
+            whole clip. The axes and the ground are fitted to this range.
+        size: figure size in inches ``(width, height)``.
+        dpi: pixels per inch (80 with the default size gives 400 × 400 pixels).
+        elev: camera elevation in degrees above the ground plane.
+        azim: camera azimuth in degrees (matplotlib's convention, in plot coordinates).
+        title: optional text at the top.
+
+    Returns:
+        The path written.
+
+    Raises:
+        TypeError: ``motion`` is not a :class:`Motion`.
+        ValueError: empty motion, bad ``fps`` / ``frame_range`` / ``size`` / ``dpi``, unknown
+            trajectory joints, missing output folder, or non-finite joint positions (naming the
+            first bad frame).
+        ImportError: matplotlib or Pillow is not installed.
+    """
+    fn = "render_gif"
+    motion = _check_motion(motion, fn)
+    out = _check_path(path, fn)
+    t_all = motion.n_frames
+    if frame_range is None:
+        start, stop = 0, t_all
+    else:
+        if (
+            not isinstance(frame_range, Sequence)
+            or len(frame_range) != 2
+            or not all(_is_int(v) for v in frame_range)
+        ):
+            raise ValueError(
+                f"{fn}: frame_range must be (start, stop) integers, got {frame_range!r}"
+            )
+        start, stop = int(frame_range[0]), int(frame_range[1])
+        if not 0 <= start < stop <= t_all:
+            raise ValueError(
+                f"{fn}: frame_range {frame_range!r} must satisfy 0 <= start < stop <= {t_all}"
+            )
+    if fps is None:
+        rate = min(float(motion.fps), 30.0)
+    else:
+        rate = _positive(fps, "fps", fn)
+        if rate > float(motion.fps) * (1 + 1e-9):
+            raise ValueError(
+                f"{fn}: fps={fps!r} exceeds the motion's frame rate {motion.fps}; frames are "
+                "only skipped, never repeated (resample the motion first)"
+            )
+        if rate > _MAX_GIF_FPS:
+            raise ValueError(
+                f"{fn}: fps={fps!r} is above {_MAX_GIF_FPS:g}; GIF frame durations are multiples "
+                "of 10 ms and players slow down frames shorter than 20 ms"
+            )
+    if not isinstance(size, Sequence) or len(size) != 2:
+        raise ValueError(f"{fn}: size must be (width, height) in inches, got {size!r}")
+    width = _positive(size[0], "size[0]", fn)
+    height = _positive(size[1], "size[1]", fn)
+    dpi = _positive(dpi, "dpi", fn)
+    traj = _trajectory_points(trajectories, motion, fn)
+    _require_plotting(fn)
+    from PIL import Image
+
+    pos = _plot_positions(motion[start:stop], fn)
+    ground = _ground(pos)
+    lo = pos.reshape(-1, 3).min(axis=0)
+    hi = pos.reshape(-1, 3).max(axis=0)
+    span = float(max((hi - lo).max(), motion.skeleton.size * 0.5, 1e-9))
+    half = 0.55 * span
+    mid = (lo + hi) / 2
+    box = _Box((float(mid[0]), float(mid[1]), float(mid[2])), half)
+    step = _nice_step(2 * half)
+    bones, colours = _bones(motion, end_sites)
+
+    fig, canvas = _figure((width, height), dpi)
+    panel = _Panel(
+        fig,
+        (0.0, 0.0, 1.0, 1.0),
+        box=box,
+        ground=ground,
+        step=step,
+        bones=bones,
+        colours=colours,
+        joints=_dot_joints(motion),
+        trajectories=traj,
+        elev=float(elev),
+        azim=float(azim),
+        linewidth=2.4,
+    )
+    if traj:
+        panel.ax.legend(loc="upper right", fontsize=7, frameon=False, handlelength=1.2)
+    width_digits = len(str(t_all - 1))
+    counter = fig.text(0.02, 0.98, "", ha="left", va="top", fontsize=8, family="monospace")
+    if title:
+        fig.text(0.5, 0.98 if not traj else 0.93, title, ha="center", va="top", fontsize=10)
+    fig.text(0.98, 0.02, f"grid {step:g}", ha="right", va="bottom", fontsize=7, color="#808080")
+
+    shown = _gif_frame_indices(start, stop, float(motion.fps), rate)
+
+    def draw(i: int) -> Image.Image:
+        k = i - start
+        panel.show(pos[k], [pos[: k + 1, p] for p, _ in traj], clip=False)
+        counter.set_text(f"frame {i:>{width_digits}d}/{t_all - 1}  t={i / motion.fps:6.2f} s")
+        canvas.draw()
+        rgba = np.asarray(canvas.buffer_rgba())
+        return Image.fromarray(np.ascontiguousarray(rgba[..., :3]))
+
+    # One palette for every frame (no flicker): taken from the last frame, which shows the
+    # complete trajectories and so every colour used.
+    palette = draw(int(shown[-1])).quantize(colors=255, method=Image.Quantize.FASTOCTREE)
+    entries = np.asarray(palette.getpalette() or [], dtype=np.int64).reshape(-1, 3)
+    near_white = (entries >= 250).all(axis=1)
+    entries[near_white] = 255  # keep the background pure white
+    palette.putpalette(entries.astype(np.uint8).ravel().tolist())
+    frames = [draw(int(i)).quantize(palette=palette, dither=Image.Dither.NONE) for i in shown]
+    frames[0].save(
+        out,
+        format="GIF",
+        save_all=True,
+        append_images=frames[1:],
+        duration=_gif_durations(len(frames), rate),
+        loop=0,
+        disposal=1,
+        optimize=False,
+    )
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Filmstrip
+# ---------------------------------------------------------------------------------------------
+def render_filmstrip(
+    motion: Motion,
+    path: str | os.PathLike[str],
+    *,
+    n_frames: int = 8,
+    frames: Sequence[int] | None = None,
+    trajectories: str | int | Sequence[str | int] | None = None,
+    end_sites: bool = True,
+    height: float = 3.0,
+    dpi: float = 100,
+    elev: float = 15.0,
+    azim: float = -60.0,
+    title: str | None = None,
+) -> Path:
+    """Write a PNG of key frames side by side, one square 3-D panel per frame.
+
+    All panels share one scale and one vertical range (the cube side fits the largest pose
+    among the chosen frames); each panel is centred horizontally on its own pose, and the
+    ground grid is fixed in the world, so travel shows as the grid shifting under the figure.
+    The frame number and time are written under each panel.
+
+    Args:
+        motion: the clip to draw.
+        path: output file (written as PNG whatever its suffix); its folder must exist.
+        n_frames: number of evenly spaced frames from first to last (ignored with ``frames``);
+            a clip with fewer frames shows all of them.
+        frames: explicit frame indices (``0 <= i < motion.n_frames``), in the order shown.
+        trajectories: joint names or point indices (see :func:`render_gif`) whose paths from
+            the first frame up to each panel's frame are drawn (clipped to the panel).
+        end_sites: draw the end-site segments.
+        height: panel height (and width) in inches.
+        dpi: pixels per inch.
+        elev: camera elevation in degrees.
+        azim: camera azimuth in degrees.
+        title: optional text above the strip.
+
+    Returns:
+        The path written.
+
+    Raises:
+        TypeError: ``motion`` is not a :class:`Motion`.
+        ValueError: empty motion, bad ``n_frames`` / ``frames`` / ``height`` / ``dpi``, unknown
+            trajectory joints, missing output folder, or non-finite joint positions.
+        ImportError: matplotlib or Pillow is not installed.
+    """
+    fn = "render_filmstrip"
+    motion = _check_motion(motion, fn)
+    out = _check_path(path, fn)
+    t_all = motion.n_frames
+    if frames is None:
+        if not _is_int(n_frames) or n_frames < 1:
+            raise ValueError(f"{fn}: n_frames must be a positive integer, got {n_frames!r}")
+        chosen = np.rint(np.linspace(0, t_all - 1, min(int(n_frames), t_all))).astype(np.int64)
+    else:
+        if isinstance(frames, str) or not isinstance(frames, Sequence | np.ndarray):
+            raise ValueError(f"{fn}: frames must be a sequence of frame indices, got {frames!r}")
+        if len(frames) == 0:
+            raise ValueError(f"{fn}: frames is empty")
+        for f in frames:
+            if not _is_int(f) or not 0 <= int(f) < t_all:
+                raise ValueError(f"{fn}: frame index {f!r} is not an integer in 0..{t_all - 1}")
+        chosen = np.asarray([int(f) for f in frames], dtype=np.int64)
+    height = _positive(height, "height", fn)
+    dpi = _positive(dpi, "dpi", fn)
+    traj = _trajectory_points(trajectories, motion, fn)
+    _require_plotting(fn)
+
+    pos = _plot_positions(motion, fn)
+    ground = _ground(pos)
+    sel = pos[chosen]  # (N, P, 3)
+    lo = sel.min(axis=1)
+    hi = sel.max(axis=1)
+    extents = np.concatenate([(hi - lo)[:, :2], (hi[:, 2] - ground)[:, None]], axis=1)
+    span = float(max(extents.max(), motion.skeleton.size * 0.5, 1e-9))
+    half = 0.55 * span
+    z_centre = ground + span / 2
+    step = _nice_step(2 * half)
+    bones, colours = _bones(motion, end_sites)
+
+    n = len(chosen)
+    label_h = 0.3
+    title_h = 0.4 if title else 0.0
+    fig_h = height + label_h + title_h
+    fig, _ = _figure((n * height, fig_h), dpi)
+    bottom = label_h / fig_h
+    panel_h = height / fig_h
+    for k, i in enumerate(chosen):
+        centre = ((lo[k, 0] + hi[k, 0]) / 2, (lo[k, 1] + hi[k, 1]) / 2, z_centre)
+        panel = _Panel(
+            fig,
+            (k / n, bottom, 1.0 / n, panel_h),
+            box=_Box((float(centre[0]), float(centre[1]), float(centre[2])), half),
+            ground=ground,
+            step=step,
+            bones=bones,
+            colours=colours,
+            joints=_dot_joints(motion),
+            trajectories=traj,
+            elev=float(elev),
+            azim=float(azim),
+            linewidth=2.0,
+        )
+        panel.show(pos[i], [pos[: i + 1, p] for p, _ in traj], clip=True)
+        fig.text(
+            (k + 0.5) / n,
+            0.5 * label_h / fig_h,
+            f"frame {i}  ·  {i / motion.fps:.2f} s",
+            ha="center",
+            va="center",
+            fontsize=9,
+        )
+        if traj and k == n - 1:
+            panel.ax.legend(loc="upper right", fontsize=7, frameon=False, handlelength=1.2)
+    if title:
+        fig.text(0.5, 1.0 - 0.5 * title_h / fig_h, title, ha="center", va="center", fontsize=11)
+    fig.text(
+        0.002,
+        0.5 * label_h / fig_h,
+        f"grid {step:g}",
+        ha="left",
+        va="center",
+        fontsize=7,
+        color="#808080",
+    )
+    fig.savefig(out, format="png", dpi=dpi, facecolor="white")
+    return out

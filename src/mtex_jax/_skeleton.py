@@ -1,0 +1,179 @@
+"""Skeleton: the static description of an articulated figure (names, tree, offsets, channels)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+import numpy as np
+
+__all__ = ["POSITION_CHANNELS", "ROTATION_CHANNELS", "Skeleton"]
+
+ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
+POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
+_ALL_CHANNELS = ROTATION_CHANNELS + POSITION_CHANNELS
+
+
+@dataclasses.dataclass(frozen=True)
+class Skeleton:
+    """An articulated figure, immutable and hashable (it is static metadata under ``jit``).
+
+    Joints are stored in file (depth-first) order, so every parent precedes its children and
+    joint 0 is the root.
+
+    Attributes:
+        names: joint names, ``(J,)``.
+        parents: parent index of each joint, ``-1`` for the root.
+        offsets: rest offset of each joint in its parent's frame, ``(J, 3)`` as tuples (the unit
+            is the file's: metres for the CMU and DeepMimic data).
+        channels: per joint, the BVH channel names in file order, e.g.
+            ``("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")``.
+            The rotation channels, in order, give the intrinsic Euler order: ``Zrotation
+            Xrotation Yrotation`` means ``R = Rz(a) @ Rx(b) @ Ry(c)``.
+        end_sites: ``(parent_index, offset)`` pairs for the BVH ``End Site`` entries.
+        up_axis: index of the vertical world axis (0 = x, 1 = y, 2 = z).
+    """
+
+    names: tuple[str, ...]
+    parents: tuple[int, ...]
+    offsets: tuple[tuple[float, float, float], ...]
+    channels: tuple[tuple[str, ...], ...]
+    end_sites: tuple[tuple[int, tuple[float, float, float]], ...] = ()
+    up_axis: int = 1
+
+    def __post_init__(self) -> None:
+        j = len(self.names)
+        if j == 0:
+            raise ValueError("Skeleton needs at least one joint")
+        for field in ("parents", "offsets", "channels"):
+            if len(getattr(self, field)) != j:
+                raise ValueError(
+                    f"Skeleton.{field} has {len(getattr(self, field))} entries, expected {j} "
+                    "(one per joint)"
+                )
+        if len(set(self.names)) != j:
+            dup = sorted({n for n in self.names if self.names.count(n) > 1})
+            raise ValueError(f"Skeleton joint names must be unique; repeated: {dup}")
+        if self.parents[0] != -1:
+            raise ValueError("Skeleton joint 0 must be the root (parent -1)")
+        for i, p in enumerate(self.parents[1:], start=1):
+            if not 0 <= p < i:
+                raise ValueError(
+                    f"Skeleton joint {i} ({self.names[i]!r}) has parent {p}; parents must precede "
+                    "their children"
+                )
+        for i, off in enumerate(self.offsets):
+            if len(off) != 3 or not all(np.isfinite(off)):
+                raise ValueError(
+                    f"Skeleton offset of joint {self.names[i]!r} is not 3 finite numbers"
+                )
+        for i, ch in enumerate(self.channels):
+            for c in ch:
+                if c not in _ALL_CHANNELS:
+                    raise ValueError(f"Skeleton joint {self.names[i]!r}: unknown channel {c!r}")
+            if len(set(ch)) != len(ch):
+                raise ValueError(f"Skeleton joint {self.names[i]!r}: repeated channel in {ch}")
+        for p, off in self.end_sites:
+            if not 0 <= p < j or len(off) != 3:
+                raise ValueError(f"Skeleton end site ({p}, {off}) is invalid")
+        if self.up_axis not in (0, 1, 2):
+            raise ValueError(f"Skeleton.up_axis must be 0, 1 or 2, got {self.up_axis}")
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_joints(self) -> int:
+        """Number of joints ``J`` (end sites excluded)."""
+        return len(self.names)
+
+    @property
+    def offsets_array(self) -> np.ndarray:
+        """Rest offsets as a float64 array ``(J, 3)``."""
+        return np.asarray(self.offsets, dtype=np.float64).reshape(-1, 3)
+
+    @property
+    def end_site_parents(self) -> tuple[int, ...]:
+        return tuple(p for p, _ in self.end_sites)
+
+    @property
+    def end_site_offsets_array(self) -> np.ndarray:
+        return np.asarray([o for _, o in self.end_sites], dtype=np.float64).reshape(-1, 3)
+
+    def rotation_order(self, joint: int) -> str:
+        """Intrinsic Euler order of a joint's rotation channels, e.g. ``"ZXY"`` (may be ``""``)."""
+        return "".join(c[0] for c in self.channels[joint] if c.endswith("rotation"))
+
+    def position_channels(self, joint: int) -> str:
+        """Axes of a joint's position channels in file order, e.g. ``"XYZ"`` (may be ``""``)."""
+        return "".join(c[0] for c in self.channels[joint] if c.endswith("position"))
+
+    @property
+    def n_channels(self) -> int:
+        return sum(len(c) for c in self.channels)
+
+    def index(self, name: str) -> int:
+        """Index of the joint called ``name``."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise ValueError(f"no joint named {name!r}; joints are {list(self.names)}") from None
+
+    def depth(self) -> tuple[int, ...]:
+        """Depth of every joint in the tree (root = 0)."""
+        d: list[int] = []
+        for p in self.parents:
+            d.append(0 if p < 0 else d[p] + 1)
+        return tuple(d)
+
+    @property
+    def size(self) -> float:
+        """A length scale of the figure: the largest root-to-leaf chain length (> 0)."""
+        off = self.offsets_array
+        lengths = np.linalg.norm(off, axis=1)
+        lengths[0] = 0.0
+        acc = np.zeros(self.n_joints)
+        for i in range(1, self.n_joints):
+            acc[i] = acc[self.parents[i]] + lengths[i]
+        ends = [acc[p] + float(np.linalg.norm(o)) for p, o in self.end_sites]
+        return float(max([*acc.tolist(), *ends, 1e-12]))
+
+    def same_structure(self, other: Skeleton) -> bool:
+        """True when names, parents and channels agree (offsets may differ)."""
+        return (
+            self.names == other.names
+            and self.parents == other.parents
+            and self.channels == other.channels
+        )
+
+    # ------------------------------------------------------------------ serialisation
+    def to_json_dict(self) -> dict[str, Any]:
+        return {
+            "names": list(self.names),
+            "parents": list(self.parents),
+            "offsets": [list(o) for o in self.offsets],
+            "channels": [list(c) for c in self.channels],
+            "end_sites": [[p, list(o)] for p, o in self.end_sites],
+            "up_axis": self.up_axis,
+        }
+
+    @classmethod
+    def from_json_dict(cls, d: dict[str, Any]) -> Skeleton:
+        try:
+            return cls(
+                names=tuple(str(n) for n in d["names"]),
+                parents=tuple(int(p) for p in d["parents"]),
+                offsets=tuple(_vec3(o) for o in d["offsets"]),
+                channels=tuple(tuple(str(c) for c in ch) for ch in d["channels"]),
+                end_sites=tuple((int(p), _vec3(o)) for p, o in d.get("end_sites", [])),
+                up_axis=int(d.get("up_axis", 1)),
+            )
+        except (KeyError, TypeError) as e:
+            raise ValueError(f"malformed skeleton description: {e!r}") from None
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_json_dict())
+
+
+def _vec3(o: Any) -> tuple[float, float, float]:
+    a, b, c = (float(x) for x in o)
+    return (a, b, c)

@@ -1,0 +1,43 @@
+"""Shared test configuration: float64 everywhere, paths to the project's shared data."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
+CMU_DIR = SHARED / "data" / "cmu-salsa"
+DEEPMIMIC_DIR = SHARED / "data" / "deepmimic"
+
+
+def _require(path: Path) -> Path:
+    if not path.is_dir():
+        if os.environ.get("CI"):
+            pytest.fail(f"shared data folder {path} is missing in CI")
+        pytest.skip(f"shared data folder {path} not available (set MTEX_SHARED)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def cmu_dir() -> Path:
+    return _require(CMU_DIR)
+
+
+@pytest.fixture(scope="session")
+def cmu_files(cmu_dir: Path) -> list[Path]:
+    files = sorted(cmu_dir.glob("*.bvh"))
+    assert len(files) == 14, f"expected 14 CMU salsa clips in {cmu_dir}, found {len(files)}"
+    return files
+
+
+@pytest.fixture(scope="session")
+def cmu_motions(cmu_files):
+    import mtex_jax as mj
+
+    return [mj.read_bvh(f) for f in cmu_files]

@@ -1,0 +1,123 @@
+"""The `mtex` command line and the installed package (wheel contents, embedded data)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+import mtex_jax as mj
+from mtex_jax._cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "mtex_jax", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=600,
+    )
+
+
+def test_info_on_example_and_bvh(capsys, cmu_files):
+    assert main(["info", "example:dance_a"]) == 0
+    out = capsys.readouterr().out
+    assert "frames:    98" in out and "fps:       60" in out and "joints:    13" in out
+    assert main(["info", str(cmu_files[0]), "--joints"]) == 0
+    out = capsys.readouterr().out
+    assert "frames:    2242" in out and "hip" in out and "rot ZYX pos XYZ" in out
+
+
+def test_errors_are_one_line_without_traceback(tmp_path):
+    r = run_cli("info", str(tmp_path / "nope.bvh"))
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "Traceback" not in r.stderr
+    assert "no such file" in r.stderr
+    bad = tmp_path / "bad.bvh"
+    bad.write_text("HIERARCHY\nROOT a\n{\n OFFSET 0 0 0\n CHANNELS 1 Wrotation\n}\nMOTION\n")
+    r = run_cli("render", str(bad), "-o", str(tmp_path / "x.gif"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert f"{bad}:5:" in r.stderr and "unknown channel" in r.stderr
+    r = run_cli("info", "example:tango")
+    assert r.returncode == 2 and "unknown example" in r.stderr
+
+
+def test_help_texts():
+    for cmd in ["info", "render", "demo", "examples"]:
+        r = run_cli(cmd, "--help")
+        assert r.returncode == 0 and "usage: mtex" in r.stdout, cmd
+
+
+def test_render_command_writes_gif_and_png(tmp_path, capsys):
+    gif = tmp_path / "walk.gif"
+    assert main(["render", "example:walk", "-o", str(gif), "--trajectories", "left_ankle"]) == 0
+    with Image.open(gif) as im:
+        assert im.n_frames > 10
+    png = tmp_path / "walk.png"
+    assert main(["render", "example:walk", "-o", str(png)]) == 0
+    with Image.open(png) as im:
+        assert im.size[0] > im.size[1]
+
+
+def test_demo_main_job(tmp_path):
+    r = run_cli("demo", "--out", str(tmp_path / "out"))
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "out" / "dance_a.gif").is_file()
+    assert (tmp_path / "out" / "dance_a_filmstrip.png").is_file()
+    fm = mj.load_feature_map(tmp_path / "out" / "features.npz")
+    assert fm.skeleton == mj.HUMANOID3D
+
+
+def test_wheel_ships_data_and_works_outside_the_source_tree(tmp_path):
+    """Build a wheel, unpack it elsewhere and load an example from there."""
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "-q",
+            "-w",
+            str(tmp_path / "dist"),
+            str(REPO),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    if r.returncode != 0 and "hatchling" in r.stderr:
+        pytest.fail(f"building the wheel needs hatchling in the environment: {r.stderr[-500:]}")
+    assert r.returncode == 0, r.stderr[-2000:]
+    (wheel,) = list((tmp_path / "dist").glob("mtex_jax-*.whl"))
+    with zipfile.ZipFile(wheel) as z:
+        names = z.namelist()
+        assert "mtex_jax/data/deepmimic/LICENSE-zlib.txt" in names
+        assert "mtex_jax/py.typed" in names
+        assert sum(n.startswith("mtex_jax/data/deepmimic/humanoid3d_") for n in names) == 15
+        z.extractall(tmp_path / "site")
+    code = (
+        "import mtex_jax, sys; m = mtex_jax.load_example('dance_a');"
+        "print(mtex_jax.__file__); print(m.n_frames)"
+    )
+    env = {**os.environ, "PYTHONPATH": str(tmp_path / "site")}
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    lines = r.stdout.split()
+    assert lines[0].startswith(str(tmp_path / "site")) and lines[1] == "98"

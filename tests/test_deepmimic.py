@@ -1,0 +1,134 @@
+"""DeepMimic reader and the embedded example data."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mtex_jax as mj
+from mtex_jax._deepmimic import FRAME_SIZE
+
+
+def test_examples_load_with_plausible_values():
+    names = mj.example_names()
+    assert len(names) == 15 and "dance_a" in names and "walk" in names
+    for name in names:
+        m = mj.load_example(name)
+        assert m.skeleton == mj.HUMANOID3D
+        assert m.n_frames >= 20 and m.fps in (16.0, 24.0, 30.0, 60.0)
+        q = np.asarray(m.rotations)
+        np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-12)
+        pelvis = np.asarray(m.root_positions)[:, 1]
+        p = np.asarray(mj.forward_kinematics(m, end_sites=True))
+        if name.startswith(("getup", "crawl", "roll")):
+            assert 0.05 < pelvis.min() and pelvis.max() < 1.2, name
+        else:
+            assert 0.6 < np.median(pelvis) < 1.0, name  # standing pelvis height in metres
+            # someone standing: the lowest point of the figure is near the floor
+            assert abs(np.median(p[:, :, 1].min(axis=1))) < 0.1, name
+    dance = mj.load_example("dance_a")
+    assert dance.fps == 60.0 and dance.n_frames == 98
+
+
+def test_examples_match_shared_copies(tmp_path):
+    shared = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "deepmimic"
+    if not shared.is_dir():
+        pytest.skip("shared data not available")
+    for name in ["dance_a", "walk"]:
+        a = mj.read_deepmimic(shared / f"humanoid3d_{name}.txt")
+        b = mj.load_example(name)
+        np.testing.assert_array_equal(np.asarray(a.rotations), np.asarray(b.rotations))
+
+
+def test_unknown_example_lists_names():
+    with pytest.raises(ValueError, match="dance_a"):
+        mj.load_example("tango")
+
+
+def test_nonuniform_keyframes_are_resampled():
+    from importlib import resources
+
+    text = resources.files("mtex_jax.data.deepmimic").joinpath("humanoid3d_roll.txt").read_text()
+    raw = np.asarray(json.loads(text)["Frames"])
+    dt = raw[:-1, 0]
+    assert np.sum(dt != dt[0]) == 1  # keyframe 5 lasts 0.032666 s, the others 0.016666 s
+    m = mj.load_example("roll")
+    assert m.fps == 60.0
+    assert m.n_frames == int(np.floor(dt.sum() * 60.0)) + 1
+    rp = np.asarray(m.root_positions)
+    np.testing.assert_allclose(rp[:6], raw[:6, 1:4], atol=1e-3)  # on the keyframes (±0.02 %)
+    # frame 6 (t = 0.1 s) falls inside the long keyframe: between keyframes 5 and 6
+    u = (6 / 60 - dt[:5].sum()) / dt[5]
+    np.testing.assert_allclose(rp[6], raw[5, 1:4] + u * (raw[6, 1:4] - raw[5, 1:4]), atol=1e-12)
+
+
+def _frames_text(frames: list[list[float]]) -> str:
+    body = ",\n".join(json.dumps(f) for f in frames)
+    return '{\n"Loop": "wrap",\n"Frames":\n[\n' + body + "\n]\n}\n"
+
+
+def test_deepmimic_malformed_inputs(tmp_path):
+    walk = mj.load_example("walk")
+    assert walk.n_frames == 39
+    frame = [0.0333] + [0.0, 0.85, 0.0] + [1.0, 0.0, 0.0, 0.0] * 2
+    frame += [1.0, 0, 0, 0] * 2 + [0.3] + [1.0, 0, 0, 0] * 2 + [0.2]
+    frame += [1.0, 0, 0, 0] + [0.3] + [1.0, 0, 0, 0] * 2 + [0.2]
+    assert len(frame) == FRAME_SIZE
+    frames = [list(frame) for _ in range(4)]
+    good = tmp_path / "good.txt"
+    good.write_text(_frames_text(frames))
+    m = mj.read_deepmimic(good)
+    assert m.n_frames == 4 and m.fps == 30.0  # 1/0.0333 = 30.03 Hz, snapped (within 0.1 %)
+
+    def case(name, fr=None, text=None):
+        p = tmp_path / f"{name}.txt"
+        p.write_text(text if text is not None else _frames_text(fr))
+        return p
+
+    short = [list(f) for f in frames]
+    short[2] = short[2][:-3]
+    nonnum = [list(f) for f in frames]
+    nonnum[1][5] = "x"  # type: ignore[call-overload]
+    badq = [list(f) for f in frames]
+    badq[3][4:8] = [0.0, 0.0, 0.0, 0.0]
+    baddt = [list(f) for f in frames]
+    baddt[1][0] = -0.1
+    full = _frames_text(frames)
+    checks = [
+        # (path, expected 1-based line, fragment)
+        (case("short", short), 7, "has 41 values"),
+        (case("nonnum", nonnum), 6, "non-numeric"),
+        (case("badq", badq), 8, "not a rotation"),
+        (case("baddt", baddt), 6, "inconsistent frame time"),
+        (case("truncated", text=full[: len(full) // 2]), None, "invalid JSON"),
+        (case("zero", text='{"Loop": "wrap", "Frames": []}'), 1, "zero frames"),
+        (case("nota", text=json.dumps({"Loop": "wrap"})), 1, "no 'Frames'"),
+    ]
+    for path, line, frag in checks:
+        with pytest.raises(ValueError) as ei:
+            mj.read_deepmimic(path)
+        msg = str(ei.value)
+        assert str(path) in msg and frag in msg, msg
+        if line is not None:
+            assert f"{path}:{line}:" in msg, msg
+        else:
+            assert f"{path}:" in msg and msg.split(":")[1].strip().isdigit(), msg
+    with pytest.raises(ValueError, match="cannot read"):
+        mj.read_deepmimic(tmp_path / "absent.txt")
+
+
+def test_read_motion_dispatch(tmp_path, cmu_files):
+    assert mj.read_motion("example:walk").n_frames == 39
+    assert mj.read_motion(cmu_files[0]).skeleton.n_joints == 43
+    renamed = tmp_path / "clip.motion"
+    renamed.write_text(Path(cmu_files[0]).read_text())
+    assert mj.read_motion(renamed).n_frames == mj.read_bvh(cmu_files[0]).n_frames
+    other = tmp_path / "x.csv"
+    other.write_text("a,b,c\n")
+    with pytest.raises(ValueError, match="unknown motion format"):
+        mj.read_motion(other)
+    with pytest.raises(ValueError, match="no such file"):
+        mj.read_motion(tmp_path / "absent.bvh")
