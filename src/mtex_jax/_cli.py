@@ -12,6 +12,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 __all__ = ["main"]
 
 _SOURCE_HELP = "a .bvh file, a DeepMimic JSON motion file, or example:NAME (see 'mtex examples')"
@@ -74,26 +76,122 @@ def _cmd_examples(args: argparse.Namespace) -> int:
     return 0
 
 
+def _frames(seconds: float | None, fps: float, name: str) -> int | None:
+    if seconds is None:
+        return None
+    if not seconds > 0:
+        raise ValueError(f"--{name} must be positive seconds, got {seconds}")
+    return max(3, round(seconds * fps))
+
+
+def _cmd_learn(args: argparse.Namespace) -> int:
+    from ._learn import LearnConfig, learn, texture_summary
+
+    t0 = time.perf_counter()
+    motions = [_read(c) for c in args.clips]
+    fps = args.fps if args.fps is not None else motions[0].fps
+    if args.fps is None and any(m.fps != fps for m in motions):
+        raise ValueError("the clips have different frame rates; choose one with --fps")
+    if args.threshold is not None and args.textons is not None:
+        raise ValueError("give --threshold or --textons, not both")
+    cfg = LearnConfig(
+        tmin=_frames(args.tmin, fps, "tmin") or 3,
+        tmax=_frames(args.tmax, fps, "tmax"),
+        state_dim=args.state_dim,
+        threshold=args.threshold,
+        n_textons=args.textons,
+        max_iter=args.max_iter,
+        fps=float(fps),
+    )
+    print(
+        f"learning from {len(motions)} clip(s), {sum(m.duration for m in motions):.1f} s of "
+        f"motion at {fps:g} Hz; tmin {cfg.tmin} frames, tmax {cfg.tmax} frames, "
+        f"state dim {cfg.state_dim}",
+        flush=True,
+    )
+    tex = learn(motions, cfg, verbose=not args.quiet)
+    tex.save(args.output)
+    print(texture_summary(tex))
+    print(f"wrote {args.output} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _cmd_segment(args: argparse.Namespace) -> int:
+    from ._learn import load_texture
+    from ._plots import plot_timeline
+
+    tex = load_texture(args.model)
+    if tex.feature_map is None:
+        raise ValueError(
+            f"{args.model} was learned from arrays, not motions; cannot segment a clip"
+        )
+    m = _read(args.clip)
+    if m.fps != tex.feature_map.fps:
+        m = m.resample(tex.feature_map.fps)
+    seg = tex.segment(m)
+    rows = seg.to_list()
+    fps = tex.feature_map.fps
+    print(
+        f"{args.clip}: {m.n_frames} frames at {fps:g} Hz, {len(rows)} segments, "
+        f"log-likelihood {float(seg.score):.2f}"
+    )
+    print("  start(s)  length(s)  texton")
+    for b, length, lab in rows:
+        print(f"  {b / fps:8.2f}  {length / fps:9.2f}  {lab:6d}")
+    if args.output:
+        plot_timeline(
+            [rows],
+            args.output,
+            fps=fps,
+            n_textons=tex.n_textons,
+            names=[Path(args.clip).stem],
+            title=f"texton labels of {args.clip}",
+        )
+        print(f"wrote {args.output}")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
-    """The main job on the embedded default data."""
-    from ._data import load_example
-    from ._features import FeatureMap
-    from ._render import render_filmstrip, render_gif
+    """The main job on the embedded default data: learn a motion texture from the clips."""
+    from ._data import example_names, load_example
+    from ._learn import LearnConfig, learn, texture_summary
+    from ._plots import plot_timeline
+    from ._render import render_gif
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    m = load_example(args.example)
-    fm = FeatureMap.fit(m)
-    y = fm.encode(m)
+    fps = 30.0
+    names = example_names()
+    motions = [load_example(n) for n in names]
+    total = sum(m.duration for m in motions)
+    print(f"embedded clips: {len(names)} ({', '.join(names)}), {total:.1f} s of motion")
+    cfg = LearnConfig(tmin=18, tmax=54, state_dim=6, fps=fps, threshold=args.threshold, max_iter=10)
     print(
-        f"loaded example:{args.example}: {m.n_frames} frames at {m.fps:g} Hz, "
-        f"{m.skeleton.n_joints} joints, observation dimension D = {fm.dim}"
+        f"learning a motion texture at {fps:g} Hz: segments of {cfg.tmin}-{cfg.tmax} frames "
+        f"({cfg.tmin / fps:.1f}-{cfg.tmax / fps:.1f} s), state dimension {cfg.state_dim}",
+        flush=True,
     )
-    gif = render_gif(m, out / f"{args.example}.gif", trajectories=["left_ankle", "right_ankle"])
-    png = render_filmstrip(m, out / f"{args.example}_filmstrip.png")
-    fm.save(out / "features.npz")
-    print(f"wrote {gif}, {png} and {out / 'features.npz'} (Y: {tuple(y.shape)})")
+    tex = learn(motions, cfg, verbose=True)
+    tex.save(out / "texture.npz")
+    print(texture_summary(tex))
+    segs = np.asarray(tex.segments)
+    rows = [
+        [tuple(int(v) for v in r[1:]) for r in segs[segs[:, 0] == s]] for s in range(len(names))
+    ]
+    plot_timeline(
+        rows,
+        out / "timeline.png",
+        fps=fps,
+        n_textons=tex.n_textons,
+        names=names,
+        title="texton labels of the embedded clips (MT Fig. 2)",
+    )
+    dance = load_example(args.example)
+    render_gif(dance, out / f"{args.example}.gif", trajectories=["left_ankle", "right_ankle"])
+    print(
+        f"wrote {out / 'texture.npz'}, {out / 'timeline.png'} and {out / (args.example + '.gif')}"
+    )
     print(f"done in {time.perf_counter() - t0:.1f} s")
     return 0
 
@@ -148,21 +246,65 @@ def _parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_examples)
 
     s = sub.add_parser(
+        "learn",
+        help="learn a motion texture from clips",
+        description="Learn a motion texture (textons + transition matrix) from motion clips "
+        "by greedy initialisation and EM (MT §4).",
+    )
+    s.add_argument("clips", nargs="+", help=_SOURCE_HELP + "; one or more")
+    s.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    s.add_argument("--tmin", type=float, default=1.0, help="shortest segment, seconds (default 1)")
+    s.add_argument("--tmax", type=float, default=3.0, help="longest segment, seconds (default 3)")
+    s.add_argument("--state-dim", type=int, default=12, help="texton state dimension (default 12)")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="greedy-initialisation error threshold (default 0.3)",
+    )
+    g.add_argument(
+        "--textons", type=int, default=None, help="search the threshold for about N textons"
+    )
+    s.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help="resample the clips to this frame rate first (default: theirs)",
+    )
+    s.add_argument("--max-iter", type=int, default=20, help="most EM iterations (default 20)")
+    s.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
+    s.set_defaults(func=_cmd_learn)
+
+    s = sub.add_parser(
+        "segment",
+        help="segment a clip with a learned motion texture",
+        description="Print the texton labels of a clip over time (and plot them, MT Fig. 2).",
+    )
+    s.add_argument("model", help="a model file written by 'mtex learn'")
+    s.add_argument("clip", help=_SOURCE_HELP)
+    s.add_argument("-o", "--output", default=None, help="timeline picture to write (.png)")
+    s.set_defaults(func=_cmd_segment)
+
+    s = sub.add_parser(
         "demo",
         help="run the main job on the embedded default data",
-        description="Load the embedded dance, fit its observation features and "
-        "render it (GIF + filmstrip).",
+        description="Learn a motion texture from the embedded DeepMimic clips and write the "
+        "model, a texton timeline and an animation of the dance.",
     )
     s.add_argument("--out", default="out", help="output folder (default: out)")
-    s.add_argument("--example", default="dance_a", help="embedded clip to use (default dance_a)")
+    s.add_argument("--example", default="dance_a", help="clip to animate (default dance_a)")
+    s.add_argument(
+        "--threshold",
+        type=float,
+        default=0.3,
+        help="greedy-initialisation threshold (default 0.3)",
+    )
     s.set_defaults(func=_cmd_demo)
 
-    try:  # the implicit-model commands live with that model
-        from ._implicit_cli import register as _register_implicit
-    except ImportError:  # pragma: no cover - module not present in this build
-        _register_implicit = None
-    if _register_implicit is not None:
-        _register_implicit(sub)
+    from ._implicit_cli import register as _register_implicit
+
+    _register_implicit(sub)  # implicit-synth, track
     return p
 
 
@@ -170,6 +312,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mtex`` console script."""
     parser = _parser()
     args = parser.parse_args(argv)
+    # The command-line program (not the library) chooses its precision: float64, like the
+    # tests and benchmarks. Library functions follow the dtype of their inputs.
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

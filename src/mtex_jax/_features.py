@@ -263,7 +263,7 @@ class FeatureMap(eqx.Module):
     def encode(self, motion: Motion) -> Float[Array, "T D"]:
         """Observation vectors ``Y (T, D)`` of a clip (z-scored active channels)."""
         self._check_motion(motion)
-        return _encode(self, motion)
+        return _scale(self, _raw(motion))
 
     def start_of(self, motion: Motion) -> tuple[np.ndarray, float]:
         """Root position ``(3,)`` and heading (radians) of a clip's first frame.
@@ -402,8 +402,18 @@ def _channel_names(sk: Skeleton, has_lp: bool) -> tuple[str, ...]:
     return tuple(names)
 
 
+_BUCKET = 256
+
+
 def _raw(m: Motion) -> Array:
-    return _raw_jit(m.skeleton.up_axis, m.root_positions, m.rotations, m.local_positions)
+    """Raw channels of a clip; frames are padded (last frame repeated) to a multiple of 256 so
+    that clips of similar length share one compiled function."""
+    t = m.n_frames
+    tp = -(-t // _BUCKET) * _BUCKET
+    idx = np.minimum(np.arange(tp), t - 1)
+    lp = None if m.local_positions is None else m.local_positions[idx]
+    raw = _raw_jit(m.skeleton.up_axis, m.root_positions[idx], m.rotations[idx], lp)
+    return raw[:t]
 
 
 @eqx.filter_jit
@@ -411,11 +421,7 @@ def _raw_jit(up_axis: int, root_positions, rotations, local_positions) -> Array:
     return raw_features(root_positions, rotations, local_positions, up_axis=up_axis)
 
 
-@eqx.filter_jit
-def _encode(fm: FeatureMap, motion: Motion) -> Array:
-    raw = raw_features(
-        motion.root_positions, motion.rotations, motion.local_positions, up_axis=fm.skeleton.up_axis
-    )
+def _scale(fm: FeatureMap, raw: Array) -> Array:
     act = np.asarray(fm.active, dtype=np.int64)
     off = jnp.asarray(fm.offset, raw.dtype)[act]
     sc = jnp.asarray(fm.scale, raw.dtype)[act]

@@ -1,0 +1,237 @@
+"""Learning a motion texture: recovery of a known texture, EM behaviour, real data, files."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from scipy.optimize import linear_sum_assignment
+
+import mtex_jax as mj
+from mtex_jax._learn import LearnConfig, MotionTexture, learn, load_texture
+
+
+# ---------------------------------------------------------------------------------------------
+# A known motion texture: 5 textons with distinct dynamics, D = 30, k = 4
+# ---------------------------------------------------------------------------------------------
+def make_textons(rng, n_t=5, D=30, k=4):
+    out = []
+    for i in range(n_t):
+        freqs = rng.uniform(0.05, 0.4, size=k // 2) * (1 + 0.3 * i)
+        A1 = np.zeros((k, k))
+        A2 = np.zeros((k, k))
+        r = 0.97
+        for j, f in enumerate(freqs):  # damped oscillators: x_t = 2r cos ω x_{t−1} − r² x_{t−2}
+            A1[2 * j, 2 * j] = 2 * r * np.cos(2 * np.pi * f)
+            A1[2 * j + 1, 2 * j + 1] = 2 * r * np.cos(2 * np.pi * 1.3 * f)
+            A2[2 * j, 2 * j] = A2[2 * j + 1, 2 * j + 1] = -r * r
+        C, _ = np.linalg.qr(rng.normal(size=(D, k)))
+        out.append((A1, A2, C, rng.normal(size=D)))
+    return out
+
+
+def sample_texture(rng, textons, n_seg=45, lo=40, hi=120):
+    n_t = len(textons)
+    k = textons[0][0].shape[0]
+    M = rng.dirichlet(np.full(n_t, 0.5), size=n_t)
+    np.fill_diagonal(M, 0.0)
+    M /= M.sum(axis=1, keepdims=True)
+    lab = int(rng.integers(n_t))
+    ys, starts, labels, t = [], [], [], 0
+    for _ in range(n_seg):
+        L = int(rng.integers(lo, hi + 1))
+        A1, A2, C, mu = textons[lab]
+        x = np.zeros((L, k))
+        x[0] = 2 * rng.normal(size=k)
+        x[1] = 0.95 * x[0] + 0.3 * rng.normal(size=k)
+        for i in range(2, L):
+            x[i] = A1 @ x[i - 1] + A2 @ x[i - 2] + 0.15 * rng.normal(size=k)
+        ys.append(mu + x @ C.T + 0.05 * rng.normal(size=(L, C.shape[0])))
+        starts.append(t)
+        labels.append(lab)
+        t += L
+        lab = int(rng.choice(n_t, p=M[lab]))
+    return np.concatenate(ys), np.asarray(starts), np.asarray(labels)
+
+
+def boundary_f1(pred, true, tol=3):
+    pred, true = np.asarray(pred), np.asarray(true)
+    precision = np.mean([np.min(np.abs(true - p)) <= tol for p in pred])
+    recall = np.mean([np.min(np.abs(pred - t)) <= tol for t in true])
+    return 2 * precision * recall / (precision + recall)
+
+
+def label_accuracy(segs, starts, labels, T):
+    truth = np.repeat(labels, np.diff(np.append(starts, T)))
+    pred = np.full(T, -1)
+    for _, b, L, i in segs:
+        pred[b : b + L] = i
+    C = np.zeros((pred.max() + 1, truth.max() + 1))
+    np.add.at(C, (pred, truth), 1)
+    r, c = linear_sum_assignment(-C)  # best one-to-one matching of texton ids
+    return C[r, c].sum() / T
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_recovers_a_known_motion_texture(seed):
+    rng = np.random.default_rng(seed)
+    Y, starts, labels = sample_texture(rng, make_textons(rng))
+    assert len(starts) >= 40 and len(set(labels.tolist())) == 5
+    cfg = LearnConfig(tmin=40, tmax=120, state_dim=4, bic_thresholds=(0.1, 0.3, 1.0))
+    mt = learn([Y], cfg)
+    segs = np.asarray(mt.segments)
+    f1 = boundary_f1(segs[:, 1], starts)
+    acc = label_accuracy(segs, starts, labels, len(Y))
+    assert f1 >= 0.9, f"boundary F1 {f1:.3f}"
+    assert acc >= 0.95, f"label accuracy {acc:.3f}"
+    assert np.all(segs[:, 2] >= 40) and np.all(segs[:, 2] <= 120)
+
+
+# ---------------------------------------------------------------------------------------------
+# Real data
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def salsa_texture(cmu_motions):
+    cfg = LearnConfig(tmin=60, tmax=180, state_dim=12, fps=60.0, threshold=0.3, max_iter=4)
+    return learn(cmu_motions, cfg)
+
+
+def test_learn_on_cmu_salsa(salsa_texture, cmu_motions):
+    mt = salsa_texture
+    segs = np.asarray(mt.segments)
+    assert mt.n_textons >= 10
+    assert np.all(segs[:, 2] >= 60) and np.all(segs[:, 2] <= 180)
+    # every clip is covered exactly, in order
+    for s, m in enumerate(cmu_motions):
+        rows = segs[segs[:, 0] == s]
+        assert rows[0, 1] == 0 and np.all(rows[1:, 1] == rows[:-1, 1] + rows[:-1, 2])
+        assert rows[-1, 1] + rows[-1, 2] == m.resample(60.0).n_frames
+    hist = np.asarray(mt.history)
+    assert hist.ndim == 2 and hist.shape[1] == 2 and len(hist) >= 2
+    # the returned model's objective (E-step) is at least the objective after initialisation
+    assert hist[:, 1].max() >= hist[0, 0]
+    np.testing.assert_allclose(np.asarray(mt.M).sum(axis=1), 1.0)
+    assert np.all(np.asarray(mt.M) > 0)  # the pseudo-count keeps every transition possible
+    assert abs(float(np.sum(np.asarray(mt.pi))) - 1.0) < 1e-12
+
+
+def test_save_load_segment_round_trip(salsa_texture, cmu_motions, tmp_path):
+    mt = salsa_texture
+    p = tmp_path / "salsa.npz"
+    mt.save(p)
+    mt2 = load_texture(p)
+    assert mt2.n_textons == mt.n_textons and mt2.config == mt.config
+    clip = cmu_motions[3].resample(60.0)
+    a = mt.segment(clip)
+    b = mt2.segment(clip)
+    assert a.to_list() == b.to_list()
+    assert float(a.score) == float(b.score)
+    # the learned segmentation of that clip is the model's optimal one
+    rows = np.asarray(mt.segments)
+    assert [tuple(r[1:]) for r in rows[rows[:, 0] == 3]] == a.to_list()
+
+
+def test_model_file_errors(salsa_texture, tmp_path):
+    p = tmp_path / "m.npz"
+    salsa_texture.save(p)
+    raw = p.read_bytes()
+    trunc = tmp_path / "trunc.npz"
+    trunc.write_bytes(raw[: len(raw) // 3])
+    with pytest.raises(ValueError, match=r"trunc\.npz"):
+        load_texture(trunc)
+    fm_file = tmp_path / "fm.npz"
+    salsa_texture.feature_map.save(fm_file)
+    with pytest.raises(ValueError, match=r"expected a 'mtex_jax\.MotionTexture' file"):
+        load_texture(fm_file)
+    # wrong format version and a missing array, written with the same container
+    from mtex_jax._io import load_arrays_json, save_arrays_json
+
+    arrays, meta = load_arrays_json(p, kind="mtex_jax.MotionTexture")
+    bad_meta = dict(meta, format_version=99)
+    save_arrays_json(tmp_path / "v99.npz", arrays, bad_meta)
+    with pytest.raises(ValueError, match="format version 99"):
+        load_texture(tmp_path / "v99.npz")
+    missing = {k: v for k, v in arrays.items() if k != "texton.A1"}
+    save_arrays_json(tmp_path / "missing.npz", missing, meta)
+    with pytest.raises(ValueError, match=r"texton\.A1"):
+        load_texture(tmp_path / "missing.npz")
+
+
+def test_learning_is_deterministic():
+    rng = np.random.default_rng(7)
+    Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=20)
+    cfg = LearnConfig(tmin=40, tmax=120, state_dim=4, threshold=0.5, max_iter=3)
+    a = learn([Y[:900], Y[900:]], cfg)
+    b = learn([Y[:900], Y[900:]], cfg)
+    for x, y in zip(jax_leaves(a), jax_leaves(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def jax_leaves(mt: MotionTexture) -> list[np.ndarray]:
+    import jax
+
+    return [np.asarray(v) for v in jax.tree.leaves(mt)]
+
+
+def test_learn_input_errors():
+    rng = np.random.default_rng(0)
+    ok = rng.normal(size=(100, 6))
+    cfg = LearnConfig(tmin=10, tmax=30, state_dim=2)
+    with pytest.raises(ValueError, match="empty"):
+        learn([], cfg)
+    with pytest.raises(ValueError, match="shorter than tmin"):
+        learn([ok, ok[:5]], cfg)
+    with pytest.raises(ValueError, match="D = 5"):
+        learn([ok, ok[:, :5]], cfg)
+    nan = ok.copy()
+    nan[17, 2] = np.nan
+    with pytest.raises(ValueError, match="NaN/inf in frame 17"):
+        learn([ok, nan], cfg)
+    with pytest.raises(ValueError, match="tmin"):
+        LearnConfig(tmin=2)
+    with pytest.raises(ValueError, match="tmax"):
+        LearnConfig(tmin=10, tmax=9)
+    with pytest.raises(ValueError, match="state_dim"):
+        learn([ok], LearnConfig(tmin=10, tmax=30, state_dim=7))
+    with pytest.raises(ValueError, match="cannot be cut"):
+        learn([ok[:25]], LearnConfig(tmin=10, tmax=12, state_dim=2))
+    with pytest.raises(TypeError, match="mixture"):
+        learn([ok, mj.load_example("walk")], cfg)
+
+
+def test_sharded_learning_equals_single_device(tmp_path):
+    """Two CPU devices (XLA flag, in a subprocess): the same model as with one device."""
+    script = textwrap.dedent(
+        """
+        import os, sys
+        import numpy as np
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        assert jax.device_count() == 2, jax.devices()
+        sys.path.insert(0, os.environ["TESTS_DIR"])
+        from test_learn import make_textons, sample_texture
+        from mtex_jax._learn import LearnConfig, learn
+        rng = np.random.default_rng(11)
+        Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=24)
+        parts = [Y[:700], Y[700:1300], Y[1300:]]
+        base = dict(tmin=40, tmax=120, state_dim=4, threshold=0.5, max_iter=3)
+        one = learn(parts, LearnConfig(**base, shard=False))
+        two = learn(parts, LearnConfig(**base, shard=True))
+        assert np.array_equal(np.asarray(one.segments), np.asarray(two.segments))
+        for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(two)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)
+        print("SHARDED_OK", len(np.asarray(one.segments)))
+        """
+    )
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+    env["TESTS_DIR"] = os.path.dirname(__file__)
+    r = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=900
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "SHARDED_OK" in r.stdout
