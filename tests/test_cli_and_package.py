@@ -51,7 +51,7 @@ def test_errors_are_one_line_without_traceback(tmp_path):
 
 
 def test_help_texts():
-    for cmd in ["info", "render", "demo", "examples"]:
+    for cmd in ["info", "render", "demo", "examples", "learn", "segment"]:
         r = run_cli(cmd, "--help")
         assert r.returncode == 0 and "usage: mtex" in r.stdout, cmd
 
@@ -71,9 +71,43 @@ def test_demo_main_job(tmp_path):
     r = run_cli("demo", "--out", str(tmp_path / "out"))
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "out" / "dance_a.gif").is_file()
-    assert (tmp_path / "out" / "dance_a_filmstrip.png").is_file()
-    fm = mj.load_feature_map(tmp_path / "out" / "features.npz")
-    assert fm.skeleton == mj.HUMANOID3D
+    assert (tmp_path / "out" / "timeline.png").is_file()
+    tex = mj.load_texture(tmp_path / "out" / "texture.npz")
+    assert tex.feature_map is not None and tex.feature_map.skeleton == mj.HUMANOID3D
+    assert "textons:" in r.stdout and "objective per EM iteration" in r.stdout
+
+
+def test_learn_and_segment_commands(tmp_path, cmu_files):
+    model = tmp_path / "salsa.npz"
+    r = run_cli(
+        "learn",
+        str(cmu_files[0]),
+        str(cmu_files[1]),
+        "-o",
+        str(model),
+        "--fps",
+        "30",
+        "--tmin",
+        "1",
+        "--tmax",
+        "3",
+        "--state-dim",
+        "8",
+        "--max-iter",
+        "3",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "textons:" in r.stdout and "[mtex learn] iter" in r.stdout
+    png = tmp_path / "timeline.png"
+    r = run_cli("segment", str(model), str(cmu_files[1]), "-o", str(png))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "segments" in r.stdout and png.is_file()
+    with Image.open(png) as im:
+        assert im.size[0] > 500
+    r = run_cli("learn", str(cmu_files[0]), "-o", str(model), "--tmin", "0")
+    assert r.returncode == 2 and "tmin" in r.stderr and "Traceback" not in r.stderr
+    r = run_cli("segment", str(tmp_path / "absent.npz"), str(cmu_files[0]))
+    assert r.returncode == 2 and "no such file" in r.stderr
 
 
 def test_wheel_ships_data_and_works_outside_the_source_tree(tmp_path):

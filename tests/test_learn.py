@@ -235,3 +235,18 @@ def test_sharded_learning_equals_single_device(tmp_path):
     )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "SHARDED_OK" in r.stdout
+
+
+def test_learn_float32_smoke():
+    """float32 in, float32 out, finite: short, very different clips stress the fits."""
+    import jax
+    import jax.numpy as jnp
+
+    clips = [mj.load_example(n).resample(30.0) for n in ["crawl", "dance_a", "kick", "spin"]]
+    fm = mj.FeatureMap.fit(clips)
+    ys = [np.asarray(fm.encode(m), dtype=np.float32) for m in clips]
+    mt = learn(ys, LearnConfig(tmin=18, tmax=54, state_dim=6, max_iter=2))
+    assert mt.textons.B.dtype == jnp.float32
+    for leaf in jax.tree.leaves(mt.textons):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+    assert np.all(np.isfinite(np.asarray(mt.history)))

@@ -11,12 +11,39 @@ from ._bvh import read_bvh, write_bvh
 from ._data import example_names, load_example
 from ._deepmimic import HUMANOID3D, read_deepmimic
 from ._features import FeatureMap, load_feature_map
+from ._implicit import ImplicitModel
 from ._kinematics import forward_kinematics, forward_kinematics_arrays
+from ._lds_refine import RefineReport, exact_log_likelihood_segments, refine_texton
+from ._learn import LearnConfig, MotionTexture, bic_select, learn, load_texture
 from ._motion import Motion, concatenate_motions
+from ._plots import plot_timeline
 from ._readers import read_motion
 from ._render import render_filmstrip, render_gif
 from ._rotation import expmap_to_quat, quat_mul, quat_to_expmap, quat_to_matrix
+from ._segment import Segmentation, segment
 from ._skeleton import Skeleton
+from ._texton import (
+    DynamicsStats,
+    FrameStats,
+    SegmentScorer,
+    Subspace,
+    Texton,
+    companion_matrix,
+    dynamics_stats,
+    exact_log_likelihood,
+    fit_texton,
+    frame_stats,
+    frame_terms,
+    init_terms,
+    sample_texton,
+    segment_log_likelihood,
+    segment_scores,
+    spectral_radius,
+    stack_textons,
+    subspace_from_stats,
+    texton_from_stats,
+)
+from ._tracking import Camera, TrackingProblem, TrackResult, make_problem, track
 
 try:
     __version__ = version("mtex_jax")
@@ -25,24 +52,60 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 __all__ = [
     "HUMANOID3D",
+    "Camera",
+    "DynamicsStats",
     "FeatureMap",
+    "FrameStats",
+    "ImplicitModel",
+    "LearnConfig",
     "Motion",
+    "MotionTexture",
+    "RefineReport",
+    "SegmentScorer",
+    "Segmentation",
     "Skeleton",
+    "Subspace",
+    "Texton",
+    "TrackResult",
+    "TrackingProblem",
     "__version__",
+    "bic_select",
+    "companion_matrix",
     "concatenate_motions",
+    "dynamics_stats",
+    "exact_log_likelihood",
+    "exact_log_likelihood_segments",
     "example_names",
     "expmap_to_quat",
+    "fit_texton",
     "forward_kinematics",
     "forward_kinematics_arrays",
+    "frame_stats",
+    "frame_terms",
+    "init_terms",
+    "learn",
     "load_example",
     "load_feature_map",
+    "load_texture",
+    "make_problem",
+    "plot_timeline",
     "quat_mul",
     "quat_to_expmap",
     "quat_to_matrix",
     "read_bvh",
     "read_deepmimic",
     "read_motion",
+    "refine_texton",
     "render_filmstrip",
     "render_gif",
+    "sample_texton",
+    "segment",
+    "segment_log_likelihood",
+    "segment_scores",
+    "spectral_radius",
+    "stack_textons",
+    "subspace_from_stats",
+    "texton_from_stats",
+    "track",
     "write_bvh",
 ]

@@ -169,7 +169,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     cfg = LearnConfig(tmin=18, tmax=54, state_dim=6, fps=fps, threshold=args.threshold, max_iter=10)
     print(
         f"learning a motion texture at {fps:g} Hz: segments of {cfg.tmin}-{cfg.tmax} frames "
-        f"({cfg.tmin / fps:.1f}-{cfg.tmax / fps:.1f} s), state dimension {cfg.state_dim}",
+        f"({cfg.tmin / fps:.1f}-{(cfg.tmax or 0) / fps:.1f} s), state dimension {cfg.state_dim}",
         flush=True,
     )
     tex = learn(motions, cfg, verbose=True)

@@ -147,7 +147,7 @@ def _feasible(n: int, tmin: int, tmax: int) -> bool:
 
 
 def _check_data(
-    data: Sequence[Motion] | Sequence[Any], config: LearnConfig
+    data: Sequence[Motion] | Sequence[Any] | Motion, config: LearnConfig
 ) -> tuple[list[np.ndarray], FeatureMap | None, list[Motion] | None]:
     if isinstance(data, Motion) or (hasattr(data, "ndim") and getattr(data, "ndim", 0) == 2):
         data = [data]  # type: ignore[list-item]

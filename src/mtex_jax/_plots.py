@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,7 +39,7 @@ def plot_timeline(
         from matplotlib.figure import Figure
     except ImportError as e:  # pragma: no cover - depends on the environment
         raise ImportError('plotting needs matplotlib: pip install "mtex_jax[plot]"') from e
-    seqs = list(rows)
+    seqs: list[Any] = list(rows)
     if seqs and len(seqs[0]) and np.ndim(seqs[0][0]) == 0:
         seqs = [seqs]  # a single sequence's list of (start, length, label)
     if not seqs:

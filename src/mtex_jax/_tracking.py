@@ -1,0 +1,495 @@
+"""Monocular 3-D tracking with a particle filter (Sidenbladh, Black & Sigal, IP §3 and §6).
+
+Observation model (SPEC §7): the 3-D positions of ``K`` joints of a motion the database has not
+seen are projected through a pin-hole camera (:class:`Camera`) and perturbed with Gaussian pixel
+noise; depth is not observed. :func:`make_problem` builds such a problem, with its ground truth.
+
+State of a particle: a window of ``d`` pose vectors ``ψ = [y, Δy]`` (the model's coordinates,
+FeatureMap units) plus the root's world position and heading, which the per-frame displacement
+and yaw change in ``y`` are integrated into (exactly as :meth:`FeatureMap.decode` does).
+
+Temporal priors ``p(ψ_t | Ψ_{t−1})``:
+
+* ``"implicit"`` (IP §3): sample a database example for the particle's window with the tree
+  search (IP Eq. 7–8) and take its successor pose ``y_{i+1}`` plus Gaussian noise
+  ``noise · γ``;
+* ``"constant_velocity"``: ``y_t = y_{t−1} + (y_{t−1} − y_{t−2}) + cv_noise · a ⊙ ε`` with
+  independent noise per parameter, ``a`` the database standard deviation of the second
+  difference of each parameter (:attr:`ImplicitModel.acceleration_std`). The root's
+  displacement and yaw-change channels already are velocities: for them constant velocity
+  means ``y_t = y_{t−1} + cv_noise · a ⊙ ε``.
+
+In both, the velocity half of the new pose vector is ``y_t − y_{t−1}``.
+
+Filter (bootstrap / SIR, IP Eq. 1): per frame, propagate every particle with the prior, weight
+it by ``p(o_t | ψ_t) ∝ exp(−Σ_k ‖π(x_k) − o_{t,k}‖² / (2 s²))`` (``x_k`` from forward kinematics
+of the particle's pose, batched over particles; ``s`` = ``likelihood_sigma``), record the
+posterior means, and resample systematically. One ``lax.scan`` over frames, ``vmap`` over
+particles; all randomness comes from explicit keys.
+
+Error (what :class:`TrackResult` reports): for each frame the mean over the ``K`` observed
+joints of the Euclidean distance between the posterior-mean 3-D joint position (weighted mean of
+the particles' forward-kinematics positions) and the true joint position, in world coordinates
+(``error``), and after subtracting each skeleton's first observed joint — the root by default —
+(``error_root_relative``); both in
+the skeleton's length unit (metres for the CMU salsa and DeepMimic data: × 1000 for mm).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
+
+from ._features import FeatureMap
+from ._implicit import ImplicitModel, tree_sample_indices, velocity_channels
+from ._kinematics import forward_kinematics, forward_kinematics_arrays
+from ._motion import Motion
+from ._rotation import expmap_to_quat, quat_mul, quat_rotate, quat_twist, yaw_quat
+
+__all__ = [
+    "Camera",
+    "TrackResult",
+    "TrackingProblem",
+    "decode_frame",
+    "default_joints",
+    "make_problem",
+    "track",
+]
+
+Prior = Literal["implicit", "constant_velocity"]
+
+
+def _axes(up: int) -> tuple[int, int, int]:
+    return up, (up + 1) % 3, (up + 2) % 3
+
+
+# --------------------------------------------------------------------------- camera
+class Camera(eqx.Module):
+    """Pin-hole camera: ``x_c = R x + t``, pixel ``= (f x_c[0] / x_c[2], f x_c[1] / x_c[2]) + c``.
+
+    Camera axes: ``x_c[0]`` right, ``x_c[1]`` down, ``x_c[2]`` forward (viewing direction).
+
+    Attributes:
+        rotation: ``(3, 3)`` world-to-camera rotation.
+        translation: ``(3,)``.
+        focal: focal length in pixels.
+        center: ``(2,)`` principal point in pixels.
+    """
+
+    rotation: Float[Array, "3 3"]
+    translation: Float[Array, " 3"]
+    focal: Float[Array, ""]
+    center: Float[Array, " 2"]
+
+    def __check_init__(self) -> None:
+        for name, shape in (
+            ("rotation", (3, 3)),
+            ("translation", (3,)),
+            ("focal", ()),
+            ("center", (2,)),
+        ):
+            if np.shape(getattr(self, name)) != shape:
+                raise ValueError(f"Camera.{name} must have shape {shape}")
+
+    @classmethod
+    def look_at(
+        cls,
+        eye: Float[ArrayLike, " 3"] | Sequence[float],
+        target: Float[ArrayLike, " 3"] | Sequence[float],
+        up: Float[ArrayLike, " 3"] | Sequence[float],
+        *,
+        focal: float = 1000.0,
+        center: tuple[float, float] = (500.0, 500.0),
+    ) -> Camera:
+        """Camera at ``eye`` looking at ``target`` with ``up`` pointing up in the image."""
+        eye = np.asarray(eye, dtype=np.float64)
+        fwd = np.asarray(target, dtype=np.float64) - eye
+        if np.linalg.norm(fwd) <= 0:
+            raise ValueError("Camera.look_at: eye and target coincide")
+        fwd = fwd / np.linalg.norm(fwd)
+        right = np.cross(fwd, np.asarray(up, dtype=np.float64))
+        if np.linalg.norm(right) < 1e-9:
+            raise ValueError("Camera.look_at: viewing direction parallel to up")
+        right = right / np.linalg.norm(right)
+        down = np.cross(fwd, right)
+        rot = np.stack([right, down, fwd])
+        return cls(
+            rotation=jnp.asarray(rot),
+            translation=jnp.asarray(-rot @ eye),
+            focal=jnp.asarray(float(focal)),
+            center=jnp.asarray(center, dtype=float),
+        )
+
+    def project(self, points: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 2"]:
+        """Pixel coordinates of world points (any batch shape; pure JAX)."""
+        x = jnp.asarray(points)
+        xc = x @ self.rotation.astype(x.dtype).T + self.translation.astype(x.dtype)
+        z = xc[..., 2:3]
+        return self.focal.astype(x.dtype) * xc[..., :2] / z + self.center.astype(x.dtype)
+
+
+# --------------------------------------------------------------------------- decoding
+def decode_frame(
+    fm: FeatureMap,
+    y: Float[Array, " D"],
+    position: Float[Array, " 3"],
+    heading: Float[Array, ""],
+) -> tuple[Array, Array, Array, Array | None]:
+    """One step of :meth:`FeatureMap.decode`: frame ``t`` from ``y_t`` and frame ``t−1``'s root.
+
+    The displacement of ``y_t`` (heading frame of ``t−1``) is rotated by ``heading`` and added
+    to ``position``; the new heading is ``heading + Δyaw_t``; the height is absolute.
+
+    Args:
+        fm: the feature map.
+        y: ``(D,)`` observation vector of frame ``t``.
+        position: ``(3,)`` root position at ``t − 1``.
+        heading: root yaw at ``t − 1`` (radians).
+
+    Returns:
+        root position ``(3,)``, heading ``()``, local rotations ``(J, 4)`` and local positions
+        ``(J, 3)`` (``None`` unless the map has position channels) of frame ``t``.
+    """
+    dt = y.dtype
+    act = np.asarray(fm.active, dtype=np.int64)
+    off = jnp.asarray(fm.offset, dt)
+    sc = jnp.asarray(fm.scale, dt)
+    raw = off.at[act].set(y * sc[act] + off[act])
+    sk = fm.skeleton
+    j = sk.n_joints
+    u, h0, h1 = _axes(sk.up_axis)
+    up = jnp.zeros(3, dt).at[u].set(1.0)
+    local = jnp.zeros(3, dt).at[h0].set(raw[0]).at[h1].set(raw[1])
+    pos = position + quat_rotate(yaw_quat(heading, up), local)
+    pos = pos.at[u].set(raw[2])
+    new_heading = heading + raw[3]
+    q = expmap_to_quat(raw[4 : 4 + 3 * j].reshape(j, 3))
+    q = q.at[0].set(quat_mul(yaw_quat(new_heading, up), q[0]))
+    lp = None
+    if fm.has_local_positions:
+        lp = jnp.concatenate([pos[None], raw[4 + 3 * j :].reshape(j - 1, 3)], axis=0)
+    return pos, new_heading, q, lp
+
+
+def default_joints(fm: FeatureMap) -> tuple[int, ...]:
+    """The root and every joint with a moving rotation channel (the observed joints)."""
+    moving = {name.rsplit(".", 1)[0] for name in fm.active_names}
+    sk = fm.skeleton
+    return tuple(i for i in range(sk.n_joints) if i == 0 or sk.names[i] in moving)
+
+
+# --------------------------------------------------------------------------- problem
+class TrackingProblem(eqx.Module):
+    """Observations and ground truth of one tracking run (shared by the priors compared).
+
+    Attributes:
+        joints: indices of the ``K`` observed joints (static; the root first).
+        frames: clip frame numbers of the tracked frames (static).
+        camera: the pin-hole camera.
+        pixel_noise: standard deviation of the pixel noise added to the observations.
+        init_window: ``(d, P)`` true pose vectors of the ``d`` frames before the first tracked
+            one (the known initial state, as in IP §6).
+        init_position: ``(3,)`` true root position of the frame before the first tracked one.
+        init_heading: its root yaw.
+        observations: ``(T, K, 2)`` noisy pixel positions.
+        truth: ``(T, K, 3)`` true world joint positions.
+    """
+
+    joints: tuple[int, ...] = eqx.field(static=True)
+    frames: tuple[int, ...] = eqx.field(static=True)
+    camera: Camera
+    pixel_noise: Float[Array, ""]
+    init_window: Float[Array, "d P"]
+    init_position: Float[Array, " 3"]
+    init_heading: Float[Array, ""]
+    observations: Float[Array, "T K 2"]
+    truth: Float[Array, "T K 3"]
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+
+def _default_camera(truth_root: np.ndarray, up_axis: int, distance: float) -> Camera:
+    u, _, h1 = _axes(up_axis)
+    target = truth_root.mean(axis=0)
+    eye = target.copy()
+    eye[h1] += distance
+    up = np.zeros(3)
+    up[u] = 1.0
+    return Camera.look_at(eye, target, up)
+
+
+def make_problem(
+    key: PRNGKeyArray,
+    model: ImplicitModel,
+    motion: Motion,
+    *,
+    n_frames: int | None = None,
+    start: int = 0,
+    camera: Camera | None = None,
+    camera_distance: float = 4.0,
+    pixel_noise: float = 2.0,
+    joints: Sequence[int | str] | None = None,
+) -> TrackingProblem:
+    """Synthetic monocular observations of a (held-out) clip.
+
+    The first ``d + 1`` frames from ``start`` give the known initial state; frames
+    ``start + d + 1 …`` are tracked.
+
+    Args:
+        key: PRNG key of the pixel noise.
+        model: the implicit model (its feature map defines the pose vectors).
+        motion: the clip to track, at the model's frame rate.
+        n_frames: frames to track (default: all the clip has).
+        start: first frame of the initial window.
+        camera: default: 1000 px focal length, looking horizontally at the mean root position
+            from ``camera_distance`` along the second horizontal axis (``+z`` for a y-up
+            skeleton).
+        camera_distance: distance of the default camera.
+        pixel_noise: standard deviation (pixels) of the Gaussian noise on each coordinate.
+        joints: observed joints (indices or names); default :func:`default_joints`.
+
+    Raises:
+        ValueError: clip too short, bad arguments, non-finite values.
+    """
+    fm = model.feature_map
+    fm._check_motion(motion)
+    d = model.window
+    if not (np.isfinite(pixel_noise) and pixel_noise >= 0):
+        raise ValueError(f"make_problem: pixel_noise must be finite and ≥ 0, got {pixel_noise}")
+    available = motion.n_frames - start - d - 1
+    if start < 0 or available < 1:
+        raise ValueError(
+            f"make_problem: the clip has {motion.n_frames} frames; with start={start} and a "
+            f"window of {d} it leaves no frame to track (need at least {start + d + 2})"
+        )
+    n = available if n_frames is None else int(n_frames)
+    if not 1 <= n <= available:
+        raise ValueError(f"make_problem: n_frames must be in 1..{available}, got {n_frames}")
+    sk = fm.skeleton
+    if joints is None:
+        jidx = default_joints(fm)
+    else:
+        jidx = tuple(sk.index(j) if isinstance(j, str) else int(j) for j in joints)
+        if not jidx or any(not 0 <= j < sk.n_joints for j in jidx):
+            raise ValueError("make_problem: joints must be non-empty valid joint indices")
+    clip = motion[start : start + d + 1 + n]
+    psi = model.pose_vectors(clip)  # rows = clip frames 1 … d+n
+    world = np.asarray(forward_kinematics(clip))
+    truth = world[d + 1 :, list(jidx)]
+    root = np.asarray(clip.root_positions)
+    q_root = np.asarray(clip.rotations)[:, 0]
+    up = np.zeros(3)
+    up[sk.up_axis] = 1.0
+    heading = np.asarray(quat_twist(jnp.asarray(q_root[d]), jnp.asarray(up)))
+    cam = camera or _default_camera(root[d + 1 :], sk.up_axis, camera_distance)
+    obs = cam.project(jnp.asarray(truth))
+    obs = obs + pixel_noise * jax.random.normal(key, obs.shape, obs.dtype)
+    frames = tuple(range(start + d + 1, start + d + 1 + n))
+    dt = model.windows.dtype
+    return TrackingProblem(
+        joints=jidx,
+        frames=frames,
+        camera=cam,
+        pixel_noise=jnp.asarray(pixel_noise, dt),
+        init_window=jnp.asarray(psi[:d], dt),
+        init_position=jnp.asarray(root[d], dt),
+        init_heading=jnp.asarray(heading, dt),
+        observations=jnp.asarray(obs, dt),
+        truth=jnp.asarray(truth, dt),
+    )
+
+
+# --------------------------------------------------------------------------- filter
+class TrackResult(eqx.Module):
+    """Output of :func:`track` (per tracked frame ``t``).
+
+    Attributes:
+        prior: which temporal prior (static).
+        n_particles: number of particles (static).
+        mean_joints: ``(T, K, 3)`` posterior-mean world joint positions.
+        mean_pose: ``(T, P)`` posterior-mean pose vector.
+        mean_root: ``(T, 3)`` posterior-mean root position.
+        ess: ``(T,)`` effective sample size ``1 / Σ w²`` before resampling.
+        error: ``(T,)`` mean per-joint 3-D distance to the truth (world coordinates).
+        error_root_relative: ``(T,)`` the same after subtracting each skeleton's first observed
+            joint (the root with the default joints).
+    """
+
+    prior: str = eqx.field(static=True)
+    n_particles: int = eqx.field(static=True)
+    mean_joints: Float[Array, "T K 3"]
+    mean_pose: Float[Array, "T P"]
+    mean_root: Float[Array, "T 3"]
+    ess: Float[Array, " T"]
+    error: Float[Array, " T"]
+    error_root_relative: Float[Array, " T"]
+
+    @property
+    def mean_error(self) -> float:
+        """Mean of :attr:`error` over frames."""
+        return float(jnp.mean(self.error))
+
+
+def _systematic(key: PRNGKeyArray, w: Float[Array, " N"]) -> Int[Array, " N"]:
+    n = w.shape[0]
+    u = (jax.random.uniform(key, (), w.dtype) + jnp.arange(n, dtype=w.dtype)) / n
+    cdf = jnp.cumsum(w)
+    cdf = cdf / cdf[-1]
+    return jnp.minimum(jnp.searchsorted(cdf, u, side="left"), n - 1).astype(jnp.int32)
+
+
+def _track_impl(
+    model: ImplicitModel,
+    problem: TrackingProblem,
+    key: PRNGKeyArray,
+    n_particles: int,
+    prior: str,
+    beta: Array,
+    noise: Array,
+    cv_noise: Array,
+    likelihood_sigma: Array,
+    leaf: str,
+    candidates: int,
+) -> tuple[Array, Array, Array, Array]:
+    fm = model.feature_map
+    dim = fm.dim
+    dt = model.windows.dtype
+    jidx = np.asarray(problem.joints)
+    g = model.gamma.astype(dt)[:dim]
+    acc = model.acceleration_std.astype(dt)
+    n = n_particles
+    # root displacement / yaw change already are velocities: constant velocity keeps them
+    vel_mask = jnp.ones(dim, dt).at[np.asarray(velocity_channels(fm), dtype=np.int64)].set(0.0)
+
+    win = jnp.broadcast_to(problem.init_window, (n, *problem.init_window.shape))
+    pos = jnp.broadcast_to(problem.init_position, (n, 3))
+    head = jnp.broadcast_to(problem.init_heading, (n,))
+    dec = jax.vmap(lambda y, p, h: decode_frame(fm, y, p, h))
+
+    def step(carry, inp):
+        win, pos, head, k = carry
+        obs = inp
+        k, k_prior, k_noise, k_res = jax.random.split(k, 4)
+        last = win[:, -1, :dim]
+        eps = jax.random.normal(k_noise, (n, dim), dt)
+        if prior == "implicit":
+            probes = model.scale_windows(win)
+            idx = tree_sample_indices(model, k_prior, probes, beta, leaf, candidates)
+            pose = model.successors[idx, :dim].astype(dt) + noise * g * eps
+        else:
+            pose = last + vel_mask * win[:, -1, dim:] + cv_noise * acc * eps
+        psi = jnp.concatenate([pose, pose - last], axis=-1)
+        win = jnp.concatenate([win[:, 1:], psi[:, None]], axis=1)
+        pos, head, rot, lp = dec(pose, pos, head)
+        x = forward_kinematics_arrays(fm.skeleton, pos, rot, lp)[:, jidx]  # (N, K, 3)
+        r = (problem.camera.project(x) - obs) / likelihood_sigma
+        loglik = -0.5 * jnp.sum(r * r, axis=(1, 2))
+        w = jax.nn.softmax(loglik)
+        mean_x = jnp.einsum("n,nkc->kc", w, x)
+        mean_psi = w @ psi
+        mean_root = w @ pos
+        ess = 1.0 / jnp.sum(w * w)
+        sel = _systematic(k_res, w)
+        return (win[sel], pos[sel], head[sel], k), (mean_x, mean_psi, mean_root, ess)
+
+    _, out = lax.scan(step, (win, pos, head, key), problem.observations)
+    return out
+
+
+_track_jit = eqx.filter_jit(_track_impl)
+
+
+def track(
+    key: PRNGKeyArray,
+    model: ImplicitModel,
+    problem: TrackingProblem,
+    *,
+    prior: Prior = "implicit",
+    n_particles: int = 300,
+    beta: float = 0.1,
+    noise: float = 0.1,
+    cv_noise: float = 0.1,
+    likelihood_sigma: float = 20.0,
+    leaf: Literal["uniform", "weighted"] = "uniform",
+    candidates: int = 1,
+) -> TrackResult:
+    """Bootstrap particle filter on a :class:`TrackingProblem` (IP §3, §6).
+
+    Args:
+        key: PRNG key of the filter (prior sampling and resampling).
+        model: the implicit model (database; also provides γ and the acceleration scale).
+        problem: observations, ground truth and initial state (:func:`make_problem`).
+        prior: ``"implicit"`` (tree search, IP Eq. 7–8) or ``"constant_velocity"``.
+        n_particles: particles ``N``.
+        beta: sampling temperature of the implicit prior.
+        noise: innovation of the implicit prior, in database standard deviations ``γ``.
+        cv_noise: innovation of the constant-velocity prior, in database standard deviations
+            of each parameter's second difference.
+        likelihood_sigma: pixel standard deviation assumed by the likelihood. Wider than the
+            true pixel noise (2 px by default) on purpose: with ``2K`` observed coordinates a
+            likelihood at the true noise leaves one particle with all the weight.
+        leaf: leaf rule of the tree search.
+        candidates: tree walks per particle and frame (see :meth:`ImplicitModel.sample`;
+            1 = the paper's sampler).
+
+    Returns:
+        a :class:`TrackResult` (errors in the skeleton's length unit).
+    """
+    if prior not in ("implicit", "constant_velocity"):
+        raise ValueError(f"track: prior must be 'implicit' or 'constant_velocity', got {prior!r}")
+    if leaf not in ("uniform", "weighted"):
+        raise ValueError(f"track: leaf must be 'uniform' or 'weighted', got {leaf!r}")
+    if isinstance(n_particles, bool) or not isinstance(n_particles, int | np.integer):
+        raise ValueError(f"track: n_particles must be an integer, got {n_particles!r}")
+    if n_particles < 1:
+        raise ValueError(f"track: n_particles must be ≥ 1, got {n_particles}")
+    if not (np.isfinite(beta) and beta > 0):
+        raise ValueError(f"track: beta must be positive and finite, got {beta}")
+    for name, v in (("noise", noise), ("cv_noise", cv_noise)):
+        if not (np.isfinite(v) and v >= 0):
+            raise ValueError(f"track: {name} must be finite and ≥ 0, got {v}")
+    if isinstance(candidates, bool) or not isinstance(candidates, int | np.integer):
+        raise ValueError(f"track: candidates must be an integer, got {candidates!r}")
+    if candidates < 1:
+        raise ValueError(f"track: candidates must be ≥ 1, got {candidates}")
+    if problem.init_window.shape != (model.window, model.pose_dim):
+        raise ValueError("track: the problem was made for a different model (window shape)")
+    if not (np.isfinite(likelihood_sigma) and likelihood_sigma > 0):
+        raise ValueError(f"track: likelihood_sigma must be positive, got {likelihood_sigma}")
+    dt = model.windows.dtype
+    mean_x, mean_psi, mean_root, ess = _track_jit(
+        model,
+        problem,
+        key,
+        int(n_particles),
+        prior,
+        jnp.asarray(beta, dt),
+        jnp.asarray(noise, dt),
+        jnp.asarray(cv_noise, dt),
+        jnp.asarray(likelihood_sigma, dt),
+        leaf,
+        int(candidates),
+    )
+    truth = problem.truth
+    err = jnp.mean(jnp.linalg.norm(mean_x - truth, axis=-1), axis=-1)
+    rel = (mean_x - mean_x[:, :1]) - (truth - truth[:, :1])
+    err_rel = jnp.mean(jnp.linalg.norm(rel, axis=-1), axis=-1)
+    return TrackResult(
+        prior=prior,
+        n_particles=int(n_particles),
+        mean_joints=mean_x,
+        mean_pose=mean_psi,
+        mean_root=mean_root,
+        ess=ess,
+        error=err,
+        error_root_relative=err_rel,
+    )
