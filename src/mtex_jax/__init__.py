@@ -15,6 +15,7 @@ from ._implicit import ImplicitModel
 from ._kinematics import forward_kinematics, forward_kinematics_arrays
 from ._lds_refine import RefineReport, exact_log_likelihood_segments, refine_texton
 from ._learn import LearnConfig, MotionTexture, bic_select, learn, load_texture
+from ._linalg import block_banded_solve
 from ._motion import Motion, concatenate_motions
 from ._plots import plot_timeline
 from ._readers import read_motion
@@ -22,6 +23,7 @@ from ._render import render_filmstrip, render_gif
 from ._rotation import expmap_to_quat, quat_mul, quat_to_expmap, quat_to_matrix
 from ._segment import Segmentation, segment
 from ._skeleton import Skeleton
+from ._synthesis import synthesize_texton
 from ._texton import (
     DynamicsStats,
     FrameStats,
@@ -70,6 +72,7 @@ __all__ = [
     "TrackingProblem",
     "__version__",
     "bic_select",
+    "block_banded_solve",
     "companion_matrix",
     "concatenate_motions",
     "dynamics_stats",
@@ -105,6 +108,7 @@ __all__ = [
     "spectral_radius",
     "stack_textons",
     "subspace_from_stats",
+    "synthesize_texton",
     "texton_from_stats",
     "track",
     "write_bvh",
