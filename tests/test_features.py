@@ -163,3 +163,22 @@ def test_decode_is_differentiable():
     check_grads(hand_height, (y,), order=1, modes=["fwd", "rev"], atol=1e-6, rtol=1e-6)
     g = jax.grad(lambda yy: jnp.sum(hand_height(yy)))(y)
     assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0)
+
+
+def test_constant_channels_do_not_depend_on_precision(cmu_motions):
+    """float32 round-off must not turn a constant finger channel into a 'moving' one."""
+    clips = [m.resample(60.0) for m in cmu_motions[:2]]
+    f64 = mj.FeatureMap.fit(clips)
+    as32 = [
+        mj.Motion(
+            m.skeleton,
+            m.fps,
+            np.asarray(m.root_positions, np.float32),
+            np.asarray(m.rotations, np.float32),
+        )
+        for m in clips
+    ]
+    f32 = mj.FeatureMap.fit(as32)
+    assert f32.active == f64.active
+    y = f32.encode(as32[0])
+    assert y.dtype == np.float32 and np.all(np.isfinite(np.asarray(y)))

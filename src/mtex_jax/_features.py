@@ -214,7 +214,9 @@ class FeatureMap(eqx.Module):
 
         Args:
             motions: one clip or a list.
-            const_tol: channels whose standard deviation is at most this are constant.
+            const_tol: channels whose standard deviation is at most this are constant (raised
+                to ``1000·eps·max(1, |mean|)`` of the working precision, so float32 round-off
+                never keeps a constant channel).
             min_scale: floor on the per-channel scale, ``scale = max(std, min_scale)``; the
                 default 0 is plain z-scoring. A floor (e.g. ``1e-2``) keeps nearly static
                 channels (a hand that barely turns) from amplifying capture noise.
@@ -244,10 +246,15 @@ class FeatureMap(eqx.Module):
         allr = np.concatenate(raws, axis=0)
         if not np.all(np.isfinite(allr)):
             raise ValueError("FeatureMap.fit: non-finite values in the motions")
-        mean = allr.mean(axis=0)
-        std = allr.std(axis=0)
-        active = tuple(int(i) for i in np.nonzero(std > const_tol)[0])
-        scale = np.where(std > const_tol, np.maximum(std, min_scale), 1.0)
+        mean = allr.astype(np.float64).mean(axis=0)
+        std = allr.astype(np.float64).std(axis=0)
+        # round-off of the feature computation in the working precision (float32 without x64)
+        # must not make a constant channel look as if it moved
+        eps = float(np.finfo(allr.dtype).eps) if allr.dtype.kind == "f" else 0.0
+        tol = np.maximum(const_tol, 1e3 * eps * np.maximum(1.0, np.abs(mean)))
+        moving = std > tol
+        active = tuple(int(i) for i in np.nonzero(moving)[0])
+        scale = np.where(moving, np.maximum(std, min_scale), 1.0)
         names = _channel_names(first.skeleton, first.local_positions is not None)
         return cls(
             skeleton=first.skeleton,
