@@ -674,6 +674,9 @@ class _Runner:
         return tex, M, pi
 
     def e_step(self, tex: Texton, M: np.ndarray, pi: np.ndarray) -> tuple[Segs, float]:
+        # only the real textons: the capacity padding of the M-step would double the work
+        # (N_t changes rarely, so the extra compilations are few)
+        tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)
         log_M, log_pi = _padded_logs(M, pi, tex.n_textons)
         seg = _segment_batch(
             tex,
@@ -704,6 +707,7 @@ class _Runner:
         rows[:n] = segs
         w = np.zeros(cap)
         w[:n] = 1.0
+        tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)
         seg_ll = float(_rows_score(tex, self.Y, jnp.asarray(rows), jnp.asarray(w, self.Y.dtype)))
         log_M, log_pi = np.log(M), np.log(pi)
         total = seg_ll
