@@ -45,7 +45,6 @@ import os
 import platform
 import re
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -60,6 +59,8 @@ jax.config.update("jax_enable_x64", True)  # a script, not the library: float64 
 import jax.numpy as jnp  # noqa: E402
 import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
+
+from _machine import cpu_and_memory  # noqa: E402  (benchmarks/ is on sys.path)
 
 try:
     import mtex_jax as mj
@@ -109,18 +110,7 @@ def _log(msg: str) -> None:
 
 
 def machine_info() -> dict[str, Any]:
-    model = platform.processor()
-    try:
-        lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=False).stdout
-        for line in lscpu.splitlines():
-            if line.startswith("Model name:"):
-                model = line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    try:
-        mem_gb = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
-    except (ValueError, OSError):
-        mem_gb = float("nan")
+    model, mem_gb = cpu_and_memory()
     try:
         import dynamax
 
