@@ -33,10 +33,10 @@ def test_examples_load_with_plausible_values():
     assert dance.fps == 60.0 and dance.n_frames == 98
 
 
-def test_examples_match_shared_copies(tmp_path):
-    shared = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "deepmimic"
-    if not shared.is_dir():
-        pytest.skip("shared data not available")
+def test_examples_match_shared_copies():
+    from conftest import DEEPMIMIC_DIR, _require
+
+    shared = _require(DEEPMIMIC_DIR)  # fails (not skips) in CI when the data is missing
     for name in ["dance_a", "walk"]:
         a = mj.read_deepmimic(shared / f"humanoid3d_{name}.txt")
         b = mj.load_example(name)
