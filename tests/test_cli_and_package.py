@@ -8,6 +8,7 @@ import sys
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from PIL import Image
 
@@ -51,7 +52,7 @@ def test_errors_are_one_line_without_traceback(tmp_path):
 
 
 def test_help_texts():
-    for cmd in ["info", "render", "demo", "examples", "learn", "segment"]:
+    for cmd in ["info", "render", "demo", "examples", "learn", "segment", "synth", "choreograph"]:
         r = run_cli(cmd, "--help")
         assert r.returncode == 0 and "usage: mtex" in r.stdout, cmd
 
@@ -70,11 +71,52 @@ def test_render_command_writes_gif_and_png(tmp_path, capsys):
 def test_demo_main_job(tmp_path):
     r = run_cli("demo", "--out", str(tmp_path / "out"))
     assert r.returncode == 0, r.stderr
-    assert (tmp_path / "out" / "dance_a.gif").is_file()
-    assert (tmp_path / "out" / "timeline.png").is_file()
-    tex = mj.load_texture(tmp_path / "out" / "texture.npz")
+    out = tmp_path / "out"
+    assert (out / "new_dance.gif").is_file() and (out / "timeline.png").is_file()
+    tex = mj.load_texture(out / "texture.npz")
     assert tex.feature_map is not None and tex.feature_map.skeleton == mj.HUMANOID3D
     assert "textons:" in r.stdout and "objective per EM iteration" in r.stdout
+    dance = mj.read_bvh(out / "new_dance.bvh")
+    assert dance.n_frames == 300 and dance.fps == 30.0
+    assert dance.skeleton.same_structure(mj.HUMANOID3D)
+    with Image.open(out / "new_dance.gif") as im:
+        assert im.n_frames == 300
+
+    # synth and choreograph on the model the demo wrote
+    model = str(out / "texture.npz")
+    r = run_cli("synth", model, "-o", str(tmp_path / "s.bvh"), "--frames", "90", "--seed", "3")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert mj.read_bvh(tmp_path / "s.bvh").n_frames == 90 and "texton path" in r.stdout
+    r = run_cli(
+        "choreograph",
+        model,
+        "--start",
+        "example:walk:5",
+        "--end",
+        "example:dance_b:20",
+        "-o",
+        str(tmp_path / "c.bvh"),
+        "--frames",
+        "120",
+        "--gif",
+        str(tmp_path / "c.gif"),
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    c = mj.read_bvh(tmp_path / "c.bvh")
+    assert c.n_frames == 120 and (tmp_path / "c.gif").is_file()
+    # the motion starts at the requested frame of the walk (BVH precision: 6 decimals)
+    walk = mj.load_example("walk").resample(30.0)
+    qc, qw = np.asarray(c.rotations)[:2, 1:], np.asarray(walk.rotations)[5:7, 1:]
+    assert np.abs(np.sum(qc * qw, axis=-1)).min() > 1 - 1e-8  # same joint rotations (±q)
+    for bad, msg in (
+        ("example:walk", "FRAME must be an integer"),
+        ("example:walk:9999", "out of range"),
+        ("walk5", "CLIP:FRAME"),
+    ):
+        r = run_cli("choreograph", model, "--start", bad, "--end", "example:walk:1", "-o", "x.bvh")
+        assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr
+    r = run_cli("synth", model, "-o", str(tmp_path / "s.gif"))
+    assert r.returncode == 2 and ".bvh" in r.stderr
 
 
 def test_learn_and_segment_commands(tmp_path, cmu_files):

@@ -17,11 +17,13 @@ from ._lds_refine import RefineReport, exact_log_likelihood_segments, refine_tex
 from ._learn import LearnConfig, MotionTexture, bic_select, learn, load_texture
 from ._linalg import block_banded_solve
 from ._motion import Motion, concatenate_motions
+from ._paths import path_cost, path_of_length, random_path, shortest_path
 from ._plots import plot_timeline
 from ._readers import read_motion
 from ._render import render_filmstrip, render_gif
 from ._rotation import expmap_to_quat, quat_mul, quat_to_expmap, quat_to_matrix
 from ._segment import Segmentation, segment
+from ._sequence import Synthesis, choreograph, match_texton, synthesize
 from ._skeleton import Skeleton
 from ._synthesis import synthesize_texton
 from ._texton import (
@@ -67,12 +69,14 @@ __all__ = [
     "Segmentation",
     "Skeleton",
     "Subspace",
+    "Synthesis",
     "Texton",
     "TrackResult",
     "TrackingProblem",
     "__version__",
     "bic_select",
     "block_banded_solve",
+    "choreograph",
     "companion_matrix",
     "concatenate_motions",
     "dynamics_stats",
@@ -91,10 +95,14 @@ __all__ = [
     "load_feature_map",
     "load_texture",
     "make_problem",
+    "match_texton",
+    "path_cost",
+    "path_of_length",
     "plot_timeline",
     "quat_mul",
     "quat_to_expmap",
     "quat_to_matrix",
+    "random_path",
     "read_bvh",
     "read_deepmimic",
     "read_motion",
@@ -105,9 +113,11 @@ __all__ = [
     "segment",
     "segment_log_likelihood",
     "segment_scores",
+    "shortest_path",
     "spectral_radius",
     "stack_textons",
     "subspace_from_stats",
+    "synthesize",
     "synthesize_texton",
     "texton_from_stats",
     "track",

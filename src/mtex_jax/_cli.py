@@ -152,11 +152,15 @@ def _cmd_segment(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    """The main job on the embedded default data: learn a motion texture from the clips."""
+    """The main job on the embedded default data: learn a texture, synthesise a new dance."""
+    import jax
+
+    from ._bvh import write_bvh
     from ._data import example_names, load_example
     from ._learn import LearnConfig, learn, texture_summary
     from ._plots import plot_timeline
     from ._render import render_gif
+    from ._sequence import synthesize
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -187,12 +191,121 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         names=names,
         title="texton labels of the embedded clips (MT Fig. 2)",
     )
-    dance = load_example(args.example)
-    render_gif(dance, out / f"{args.example}.gif", trajectories=["left_ankle", "right_ankle"])
+    n_frames = max(4, round(args.seconds * fps))
+    print(f"synthesising a new dance: {n_frames} frames ({n_frames / fps:.1f} s), seed {args.seed}")
+    new = synthesize(tex, jax.random.key(args.seed), n_frames=n_frames)
+    assert new.motion is not None
+    write_bvh(out / "new_dance.bvh", new.motion)
     print(
-        f"wrote {out / 'texture.npz'}, {out / 'timeline.png'} and {out / (args.example + '.gif')}"
+        f"  texton path {np.asarray(new.path).tolist()}, lengths "
+        f"{np.asarray(new.lengths).tolist()} frames"
+    )
+    render_gif(
+        new.motion,
+        out / "new_dance.gif",
+        trajectories=["left_ankle", "right_ankle"],
+        title=f"synthesised from {tex.n_textons} textons (seed {args.seed})",
+    )
+    print(
+        f"wrote {out / 'texture.npz'}, {out / 'timeline.png'}, {out / 'new_dance.bvh'} and "
+        f"{out / 'new_dance.gif'}"
     )
     print(f"done in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _load_model(path: str):
+    from ._learn import load_texture
+
+    tex = load_texture(path)
+    if tex.feature_map is None:
+        raise ValueError(f"{path} was learned from arrays, not motions; it cannot make a BVH")
+    return tex
+
+
+def _write_outputs(syn, out: str, gif: str | None, title: str) -> None:
+    from ._bvh import write_bvh
+
+    if not str(out).lower().endswith(".bvh"):
+        raise ValueError(f"-o/--output must be a .bvh file, got {out!r}")
+    assert syn.motion is not None
+    write_bvh(out, syn.motion)
+    fps = syn.motion.fps
+    print(
+        f"texton path {np.asarray(syn.path).tolist()}\n"
+        f"lengths (frames) {np.asarray(syn.lengths).tolist()}\n"
+        f"wrote {out} ({syn.n_frames} frames, {syn.n_frames / fps:.2f} s at {fps:g} Hz)"
+    )
+    if gif:
+        from ._render import render_gif
+
+        render_gif(syn.motion, gif, title=title)
+        print(f"wrote {gif}")
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    import jax
+
+    from ._sequence import synthesize
+
+    tex = _load_model(args.model)
+    assert tex.feature_map is not None  # checked by _load_model
+    fps = tex.feature_map.fps
+    n = args.frames if args.frames is not None else round(10.0 * fps)
+    if n < 4:
+        raise ValueError(f"--frames must be >= 4, got {n}")
+    t0 = time.perf_counter()
+    syn = synthesize(tex, jax.random.key(args.seed), n_frames=n)
+    print(
+        f"synthesised {n} frames from {tex.n_textons} textons in {time.perf_counter() - t0:.1f} s"
+    )
+    _write_outputs(syn, args.output, args.gif, f"mtex synth (seed {args.seed})")
+    return 0
+
+
+def _clip_frame(spec: str, tex) -> tuple[np.ndarray, np.ndarray, float]:
+    """``CLIP:FRAME`` -> observation pair (2, D), root position and heading at that frame."""
+    clip, sep, frame_s = spec.rpartition(":")
+    if not sep or not clip:
+        raise ValueError(f"expected CLIP:FRAME (e.g. example:dance_a:10), got {spec!r}")
+    try:
+        frame = int(frame_s)
+    except ValueError:
+        raise ValueError(f"{spec!r}: FRAME must be an integer, got {frame_s!r}") from None
+    m = _read(clip)
+    fm = tex.feature_map
+    if m.fps != fm.fps:
+        m = m.resample(fm.fps)
+    if not 0 <= frame < m.n_frames - 1:
+        raise ValueError(
+            f"{spec!r}: frame {frame} out of range; the clip has {m.n_frames} frames at "
+            f"{fm.fps:g} Hz (the pose uses frames FRAME and FRAME+1)"
+        )
+    Y = np.asarray(fm.encode(m))
+    pos, heading = fm.start_of(m[frame:])
+    return Y[frame : frame + 2], pos, heading
+
+
+def _cmd_choreograph(args: argparse.Namespace) -> int:
+    import jax
+
+    from ._sequence import choreograph
+
+    tex = _load_model(args.model)
+    start, pos, heading = _clip_frame(args.start, tex)
+    end, _, _ = _clip_frame(args.end, tex)
+    t0 = time.perf_counter()
+    syn = choreograph(
+        tex,
+        jax.random.key(args.seed),
+        start,
+        end,
+        n_frames=args.frames,
+        start_position=pos,
+        start_heading=heading,
+    )
+    print(f"choreographed {syn.n_frames} frames in {time.perf_counter() - t0:.1f} s")
+    _write_outputs(syn, args.output, args.gif, f"{args.start} -> {args.end}")
     return 0
 
 
@@ -289,11 +402,15 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser(
         "demo",
         help="run the main job on the embedded default data",
-        description="Learn a motion texture from the embedded DeepMimic clips and write the "
-        "model, a texton timeline and an animation of the dance.",
+        description="Learn a motion texture from the embedded DeepMimic clips, then "
+        "synthesise a new dance from it: writes the model, a texton timeline, the new dance "
+        "as BVH and as an animated GIF.",
     )
     s.add_argument("--out", default="out", help="output folder (default: out)")
-    s.add_argument("--example", default="dance_a", help="clip to animate (default dance_a)")
+    s.add_argument(
+        "--seconds", type=float, default=10.0, help="length of the new dance (default 10)"
+    )
+    s.add_argument("--seed", type=int, default=0, help="random seed of the synthesis (default 0)")
     s.add_argument(
         "--threshold",
         type=float,
@@ -301,6 +418,37 @@ def _parser() -> argparse.ArgumentParser:
         help="greedy-initialisation threshold (default 0.3)",
     )
     s.set_defaults(func=_cmd_demo)
+
+    s = sub.add_parser(
+        "synth",
+        help="synthesise a new motion from a learned texture",
+        description="Random texton path, key poses, constrained synthesis of every texton "
+        "(MT §5); writes BVH and optionally an animated GIF.",
+    )
+    s.add_argument("model", help="a model file written by 'mtex learn' or 'mtex demo'")
+    s.add_argument("-o", "--output", required=True, help="BVH file to write")
+    s.add_argument("--frames", type=int, default=None, help="frames to make (default 10 s)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--gif", default=None, help="also render an animated GIF here")
+    s.set_defaults(func=_cmd_synth)
+
+    s = sub.add_parser(
+        "choreograph",
+        help="make a motion from a start pose to an end pose (virtual choreographer)",
+        description="Match the start and end poses to textons, plan a texton path between "
+        "them and synthesise it (MT Fig. 1). Poses are CLIP:FRAME, e.g. example:dance_a:10 "
+        "or salsa.bvh:120 (frames counted at the model's frame rate).",
+    )
+    s.add_argument("model", help="a model file written by 'mtex learn' or 'mtex demo'")
+    s.add_argument("--start", required=True, help="start pose, CLIP:FRAME")
+    s.add_argument("--end", required=True, help="end pose, CLIP:FRAME")
+    s.add_argument("-o", "--output", required=True, help="BVH file to write")
+    s.add_argument(
+        "--frames", type=int, default=None, help="total frames (default: planned lengths)"
+    )
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--gif", default=None, help="also render an animated GIF here")
+    s.set_defaults(func=_cmd_choreograph)
 
     from ._implicit_cli import register as _register_implicit
 

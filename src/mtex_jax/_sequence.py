@@ -1,0 +1,543 @@
+"""Whole-sequence synthesis and the virtual choreographer (SPEC §5; MT §5, Fig. 1, 5, 8).
+
+A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthesised as follows.
+
+1. Key poses first: for every position ``m`` one training segment of texton ``ℓ_m`` is drawn
+   (uniformly among that texton's segments); its first two frames ``K_m (2, D)`` are the key
+   poses and, unless lengths are given, its length is ``l_m``.
+2. Texton ``m < n`` is synthesised for ``l_m + 2`` frames with its first two frames held at
+   ``K_m`` (the given ``start`` pose for ``m = 1``) and its last two held at ``K_{m+1}``,
+   reprojected into its own subspace, ``x = C_{ℓ_m}ᵀ(K_{m+1} − μ_{ℓ_m})`` (MT §5.4,
+   :func:`~mtex_jax._synthesis.synthesize_texton`). The last two frames are dropped, because
+   they are the first two frames of texton ``m + 1``: shared frames appear once.
+3. The last texton is held, the same way, at the key poses of a successor drawn from
+   ``M[ℓ_n, ·]`` that is not output — or, for the choreographer, at the requested end pose in
+   its own last two frames. No texton runs free, so an unstable texton (spectral radius > 1)
+   cannot diverge.
+4. The concatenated observations ``Y (Σ l_m, D)`` are decoded into a :class:`Motion` whose
+   root trajectory is integrated continuously from a start position and heading.
+
+All textons of a path are synthesised by one jit-compiled ``lax.map`` over the path with a
+common padded length (the end constraint sits at a per-texton row of a static-shaped mask),
+so paths with the same number of textons and similar lengths share one compilation.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from mtex_jax._motion import Motion
+from mtex_jax._paths import path_of_length, random_path, shortest_path
+from mtex_jax._synthesis import Weighting, _constrained
+from mtex_jax._texton import Texton, frame_terms, init_terms
+
+__all__ = ["Synthesis", "choreograph", "match_texton", "synthesize"]
+
+_PAD_TEXTONS = 8  # the path axis is padded to a multiple of this (compilation sharing)
+_PAD_FRAMES = 16  # and the per-texton length to a multiple of this
+
+Residual = Literal["blend", "subspace"]
+
+
+class Synthesis(eqx.Module):
+    """A synthesised sequence.
+
+    Attributes:
+        Y: ``(T, D)`` observations (the texture's feature space).
+        path: ``(n,)`` texton labels.
+        lengths: ``(n,)`` frames contributed by each texton (``Σ = T``).
+        starts: ``(n,)`` first output frame of each texton.
+        key_segments: ``(n,)`` training segment whose key poses (and length, unless lengths
+            were given) each texton used; ``-1`` where the start pose was given instead.
+        motion: the decoded :class:`Motion` (``None`` if the texture has no feature map).
+    """
+
+    Y: Float[Array, "T D"]
+    path: Int[Array, " n"]
+    lengths: Int[Array, " n"]
+    starts: Int[Array, " n"]
+    key_segments: Int[Array, " n"]
+    motion: Motion | None
+
+    @property
+    def n_frames(self) -> int:
+        return int(np.shape(self.Y)[0])
+
+    def frame_labels(self) -> np.ndarray:
+        """``(T,)`` texton label of every frame."""
+        return np.repeat(np.asarray(self.path), np.asarray(self.lengths))
+
+    def boundaries(self) -> np.ndarray:
+        """Output frames where a new texton starts (all but the first)."""
+        return np.asarray(self.starts)[1:]
+
+
+# --------------------------------------------------------------------------------------------
+# checks and key-pose instances
+# --------------------------------------------------------------------------------------------
+
+
+def _check_texture(texture: Any) -> None:
+    from mtex_jax._learn import MotionTexture
+
+    if not isinstance(texture, MotionTexture):
+        raise TypeError(f"expected a MotionTexture, got {type(texture).__name__}")
+    labels = np.asarray(texture.key_pose_labels)
+    missing = np.setdiff1d(np.arange(texture.n_textons), labels)
+    if missing.size:
+        raise ValueError(
+            f"texton(s) {missing.tolist()} have no training segments (no key poses to start from)"
+        )
+
+
+def _check_options(weighting: Any, residual: Any) -> None:
+    if weighting not in ("whitened", "paper"):
+        raise ValueError(f"weighting must be 'whitened' or 'paper', got {weighting!r}")
+    if residual not in ("blend", "subspace"):
+        raise ValueError(f"residual must be 'blend' or 'subspace', got {residual!r}")
+
+
+def _check_pair(name: str, pose: Any, D: int) -> np.ndarray:
+    try:
+        p = np.asarray(pose, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name} must be a (2, {D}) array of observation frames") from e
+    if p.shape != (2, D):
+        raise ValueError(f"{name} must have shape (2, {D}) (two observation frames), got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{name} contains NaN or inf")
+    return p
+
+
+def _predecessors(texture: Any) -> np.ndarray:
+    """Label of the training segment just before each segment (``-1`` at a clip start)."""
+    segs = np.asarray(texture.segments)
+    prev = np.full(segs.shape[0], -1, dtype=np.int64)
+    if segs.shape[0] > 1:
+        follows = (segs[1:, 0] == segs[:-1, 0]) & (segs[1:, 1] == segs[:-1, 1] + segs[:-1, 2])
+        prev[1:] = np.where(follows, segs[:-1, 3], -1)
+    return prev
+
+
+def _instances(texture: Any, key: Array | None, path: np.ndarray) -> np.ndarray:
+    """One training segment of texton ``path[m]`` for every ``m`` (index into key_poses).
+
+    Candidates for position ``m ≥ 1`` are the segments of ``path[m]`` that followed a segment
+    of ``path[m − 1]`` in the training clips, if there are any (so the key poses texton
+    ``m − 1`` must reach are poses it actually led to), otherwise all segments of ``path[m]``.
+    With a key the choice is uniform among the candidates; without, the candidate whose length
+    is closest to their median.
+    """
+    lab = np.asarray(texture.key_pose_labels)
+    lengths = np.asarray(texture.segment_lengths)
+    prev = _predecessors(texture)
+    cand = lab[None, :] == path[:, None]  # (n, n_seg)
+    after = cand[1:] & (prev[None, :] == path[:-1, None])
+    use = after.any(axis=1)
+    cand[1:][use] = after[use]
+    if key is None:
+        out = np.empty(path.size, dtype=np.int64)
+        for m in range(path.size):  # host loop over path positions (textons, not frames)
+            idx = np.flatnonzero(cand[m])
+            med = np.median(lengths[idx])
+            out[m] = idx[np.argmin(np.abs(lengths[idx] - med))]
+        return out
+    logits = jnp.where(jnp.asarray(cand), 0.0, -jnp.inf)
+    return np.asarray(jax.random.categorical(key, logits, axis=-1), dtype=np.int64)
+
+
+def _successor(texture: Any, key: Array | None, label: int) -> int:
+    """A texton drawn from ``M[label, ·]`` (the most probable one without a key)."""
+    row = np.asarray(texture.M, dtype=np.float64)[label]
+    if key is None:
+        return int(np.argmax(row))
+    with np.errstate(divide="ignore"):
+        return int(jax.random.categorical(key, jnp.asarray(np.log(row))))
+
+
+def _check_lengths(lengths: Any, n: int) -> np.ndarray:
+    arr = np.asarray(lengths)
+    if arr.shape != (n,) or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(
+            f"lengths must be {n} integers (one per texton), got {arr.dtype} {arr.shape}"
+        )
+    return arr.astype(np.int64)
+
+
+def _scale_lengths(lengths: np.ndarray, total: int, min_len: np.ndarray) -> np.ndarray:
+    """Integer lengths proportional to ``lengths`` that sum to ``total`` (each ≥ its minimum)."""
+    if total < int(min_len.sum()):
+        raise ValueError(
+            f"{total} frames are too few for {lengths.size} textons (need >= {int(min_len.sum())})"
+        )
+    out = np.maximum(np.floor(lengths * total / lengths.sum()).astype(np.int64), min_len)
+    while out.sum() != total:  # at most n corrections
+        diff = total - int(out.sum())
+        if diff > 0:
+            out[np.argmax(lengths * total / lengths.sum() - out)] += 1
+        else:
+            slack = np.where(out > min_len, out - lengths * total / lengths.sum(), -np.inf)
+            out[np.argmax(slack)] -= 1
+    return out
+
+
+def _round_up(x: int, m: int) -> int:
+    return -(-x // m) * m
+
+
+# --------------------------------------------------------------------------------------------
+# the jitted core: all textons of a path
+# --------------------------------------------------------------------------------------------
+
+
+def _path_core(
+    textons: Texton,
+    labels: Int[Array, " n"],
+    starts: Float[Array, "n 2 D"],
+    ends: Float[Array, "n 2 D"],
+    end_at: Int[Array, " n"],
+    v: Float[Array, "n l2 k"],
+    weighting: str,
+    blend: bool,
+) -> Float[Array, "n l D"]:
+    length = v.shape[1] + 2
+    t = jnp.arange(length)
+
+    def one(args: tuple[Array, ...]) -> Array:
+        lab, s, e, at, vi = args
+        tex = jax.tree.map(lambda a: a[lab], textons)
+
+        # rows from ``at`` on are held (the end pair, then frames that are dropped), so no
+        # free state follows the end constraint: a free tail would make the normal equations
+        # of an unstable texton as ill-conditioned as ρ^(2·tail)
+        poses = jnp.where((t == at)[:, None], e[0], e[1])
+        y = _constrained(tex, vi, s, None, (t >= at, poses), weighting)
+        if not blend:
+            return y
+        # residual outside the subspace, r = y − μ − C Cᵀ(y − μ), at the held frames, blended
+        # linearly from frame 1 to frame ``at`` so that held frames are the exact poses
+        res = lambda z: (z - tex.mu) - ((z - tex.mu) @ tex.C) @ tex.C.T
+        rs, re = res(s), res(e)
+        span = jnp.maximum(at - 1, 1).astype(y.dtype)
+        w = jnp.clip((t - 1) / span, 0.0, 1.0)[:, None]
+        r = (1.0 - w) * rs[1] + w * re[0]
+        r = jnp.where((t == 0)[:, None], rs[0], r)
+        r = jnp.where((t == at + 1)[:, None], re[1], r)
+        return y + r
+
+    # lax.map (not vmap): one unbatched factorisation per texton (see _linalg's notes)
+    return lax.map(one, (labels, starts, ends, end_at, v))
+
+
+_path_core_jit = eqx.filter_jit(_path_core)
+
+
+def _synthesize_path(
+    texture: Any,
+    key: Array | None,
+    path: np.ndarray,
+    lengths: np.ndarray,
+    seg_idx: np.ndarray,
+    start: np.ndarray | None,
+    end: np.ndarray,
+    end_in_output: bool,
+    weighting: str,
+    residual: str,
+) -> Array:
+    """Observations ``(Σ lengths, D)`` of a planned path (see the module docstring)."""
+    n = path.size
+    tex = texture.textons
+    dt = tex.mu.dtype
+    D, k = texture.obs_dim, int(tex.C.shape[-1])
+    key_poses = np.asarray(texture.key_poses)[seg_idx]  # (n, 2, D)
+    starts = key_poses.copy()
+    if start is not None:
+        starts[0] = start
+    ends = np.zeros_like(starts)
+    ends[:-1] = starts[1:]
+    ends[-1] = end
+    # texton m is held at the next key poses in rows l_m, l_m + 1 (dropped from the output);
+    # the last one at ``end`` there too, or in its own last two rows (``end_in_output``)
+    end_at = lengths.copy()
+    if end_in_output:
+        end_at[-1] -= 2
+    n_pad = _round_up(n, _PAD_TEXTONS)
+    l_pad = _round_up(int(end_at.max()) + 2, _PAD_FRAMES)
+    pad = n_pad - n
+    lab_p = np.concatenate([path, np.zeros(pad, np.int64)]).astype(np.int32)
+    st_p = np.concatenate([starts, np.repeat(starts[:1], pad, 0)])
+    en_p = np.concatenate([ends, np.zeros((pad, 2, D))])
+    at_p = np.concatenate([end_at, np.full(pad, l_pad - 2)]).astype(np.int32)
+    if key is None:
+        v = jnp.zeros((n_pad, l_pad - 2, k), dt)
+    else:
+        v = jax.random.normal(key, (n_pad, l_pad - 2, k), dt)
+    out = _path_core_jit(
+        tex,
+        jnp.asarray(lab_p),
+        jnp.asarray(st_p, dt),
+        jnp.asarray(en_p, dt),
+        jnp.asarray(at_p),
+        v,
+        weighting,
+        residual == "blend",
+    )
+    rows = np.repeat(np.arange(n), lengths)
+    cols = np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    return out[jnp.asarray(rows), jnp.asarray(cols)]
+
+
+def _finish(
+    texture: Any,
+    Y: Array,
+    path: np.ndarray,
+    lengths: np.ndarray,
+    seg_idx: np.ndarray,
+    start_position: Any,
+    start_heading: Any,
+    decode: bool,
+) -> Synthesis:
+    motion = None
+    if decode and texture.feature_map is not None:
+        motion = texture.feature_map.decode(Y, start_position, start_heading)
+    return Synthesis(
+        Y=Y,
+        path=jnp.asarray(path),
+        lengths=jnp.asarray(lengths),
+        starts=jnp.asarray(np.cumsum(lengths) - lengths),
+        key_segments=jnp.asarray(seg_idx),
+        motion=motion,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# public entry points
+# --------------------------------------------------------------------------------------------
+
+
+def synthesize(
+    texture: Any,
+    key: Array | None,
+    path: ArrayLike | None = None,
+    n_frames: int | None = None,
+    *,
+    lengths: ArrayLike | None = None,
+    start: Float[ArrayLike, "2 D"] | None = None,
+    start_texton: int | None = None,
+    start_position: Float[ArrayLike, 3] | None = None,
+    start_heading: float | None = None,
+    weighting: Weighting = "whitened",
+    residual: Residual = "blend",
+    decode: bool = True,
+) -> Synthesis:
+    """Synthesise a new motion from a motion texture (MT §5; SPEC §5).
+
+    Key poses are chosen for every texton on the path first; each texton is synthesised with
+    the constrained least-squares solver of :func:`~mtex_jax._synthesis.synthesize_texton`,
+    held at its own key poses and at the next texton's key poses (reprojected into its
+    subspace); the shared frames appear once; the last texton ends at the key poses of a
+    successor drawn from ``M``. See the module docstring for the frame layout.
+
+    * ``path=None``: a random walk on ``M`` (first texton from ``π`` or ``start_texton``)
+      until ``n_frames`` frames are covered; the last texton is shortened to fit.
+    * ``path`` given, ``n_frames=None``: lengths drawn with the key poses (or ``lengths``).
+    * ``path`` and ``n_frames`` given: the drawn lengths are rescaled to sum to ``n_frames``
+      (each texton extrapolated to its new length, MT Fig. 10).
+
+    Args:
+        texture: a learned :class:`~mtex_jax._learn.MotionTexture`.
+        key: JAX PRNG key; ``None`` = deterministic: zero noise (conditional means) and, per
+            texton, the training segment of median length (a random path needs a key).
+        path: ``(n,)`` texton labels, or ``None``.
+        n_frames: number of output frames.
+        lengths: ``(n,)`` frames per texton (with ``path``), instead of drawn ones.
+        start: ``(2, D)`` first two frames (held), instead of the first texton's key poses.
+        start_texton: first texton of a random path.
+        start_position: ``(3,)`` root position of frame 0 for decoding (default origin).
+        start_heading: root yaw of frame 0 (radians, default 0).
+        weighting: ``"whitened"`` (exact conditional samples) or ``"paper"`` (MT Eq. 9).
+        residual: ``"blend"`` (default): the part of the held poses outside the texton's
+            subspace is blended linearly across the texton, so held frames are the exact
+            poses and boundaries are continuous; ``"subspace"``: plain ``μ + C x`` (the
+            paper; boundaries then jump by the difference of two reprojections).
+        decode: decode to a :class:`Motion` (if the texture has a feature map).
+
+    Returns:
+        a :class:`Synthesis` (observations, path, lengths, starts, decoded motion).
+
+    Raises:
+        ValueError / TypeError: bad path, lengths, poses or sizes.
+    """
+    _check_texture(texture)
+    _check_options(weighting, residual)
+    n_t = texture.n_textons
+    D = texture.obs_dim
+    start_np = None if start is None else _check_pair("start", start, D)
+    if n_frames is not None:
+        if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
+            raise TypeError(f"n_frames must be an int, got {n_frames!r}")
+        if n_frames < 4:
+            raise ValueError(f"n_frames must be >= 4, got {n_frames}")
+        n_frames = int(n_frames)
+    k_path, k_inst, k_noise, k_succ = jax.random.split(key, 4) if key is not None else (None,) * 4
+
+    if path is None:
+        if lengths is not None:
+            raise ValueError("lengths need a path")
+        if n_frames is None:
+            raise ValueError("give a path or n_frames")
+        if k_path is None:
+            raise ValueError("a random path needs a key (key=None only with a given path)")
+        shortest = int(max(2, np.asarray(texture.segment_lengths).min()))
+        n_max = n_frames // shortest + 2
+        walk = random_path(texture, k_path, n_max, start=start_texton)
+        seg_idx = _instances(texture, k_inst, walk)
+        drawn = np.asarray(texture.segment_lengths)[seg_idx]
+        n = int(np.searchsorted(np.cumsum(drawn), n_frames) + 1)
+        path_np, seg_idx, lens = walk[:n], seg_idx[:n], drawn[:n].copy()
+        lens[-1] = n_frames - int(lens[:-1].sum())
+        if lens[-1] < 2 and n > 1:  # fold a too-short tail into the previous texton
+            lens[-2] += lens[-1]
+            path_np, seg_idx, lens = path_np[:-1], seg_idx[:-1], lens[:-1]
+    else:
+        if start_texton is not None:
+            raise ValueError("start_texton is for random paths; the path's first label is given")
+        path_np = np.asarray(path)
+        if path_np.ndim != 1 or path_np.size < 1 or not np.issubdtype(path_np.dtype, np.integer):
+            raise ValueError(f"path must be a non-empty 1-D integer array, got {path_np.shape}")
+        if (path_np < 0).any() or (path_np >= n_t).any():
+            raise ValueError(f"path has labels outside [0, {n_t})")
+        path_np = path_np.astype(np.int64)
+        seg_idx = _instances(texture, k_inst, path_np)
+        if lengths is not None:
+            lens = _check_lengths(lengths, path_np.size)
+            if n_frames is not None and int(lens.sum()) != n_frames:
+                raise ValueError(f"lengths sum to {int(lens.sum())}, not n_frames = {n_frames}")
+        else:
+            lens = np.asarray(texture.segment_lengths)[seg_idx].astype(np.int64)
+            if n_frames is not None:
+                lens = _scale_lengths(lens, n_frames, np.full(lens.size, 2))
+    if (lens < 2).any():
+        raise ValueError(f"every texton needs >= 2 frames, got lengths {lens.tolist()}")
+    # the last texton is held at the key poses of a successor drawn from M (not output), so
+    # every texton is constrained at both ends and none runs free (unstable textons diverge)
+    succ = _successor(texture, k_succ, int(path_np[-1]))
+    succ_seg = _instances(texture, k_succ, np.asarray([path_np[-1], succ]))[1]
+    end_np = np.asarray(texture.key_poses)[succ_seg]
+    Y = _synthesize_path(
+        texture, k_noise, path_np, lens, seg_idx, start_np, end_np, False, weighting, residual
+    )
+    seg_out = seg_idx.copy()
+    if start_np is not None:
+        seg_out[0] = -1
+    return _finish(texture, Y, path_np, lens, seg_out, start_position, start_heading, decode)
+
+
+def match_texton(
+    texture: Any, pose: Float[ArrayLike, "2 D"], *, role: str = "start"
+) -> tuple[int, np.ndarray]:
+    """The texton that best explains a pair of frames at the start or the end of a segment.
+
+    ``role="start"``: the pair as the first two frames of a segment of texton ``i``, scored
+    ``init_i(0) + obs_i(0) + obs_i(1)`` (initial two-state Gaussian plus the residual outside
+    the subspace, SPEC §3). ``role="end"``: the pair as the last two frames, scored by the
+    residual ``obs_i(0) + obs_i(1)`` (a texton's end states have no stored distribution), so
+    the chosen texton's subspace reproduces the pose best.
+
+    Returns:
+        ``(best texton, scores (N_t,))``.
+    """
+    _check_texture(texture)
+    if role not in ("start", "end"):
+        raise ValueError(f"role must be 'start' or 'end', got {role!r}")
+    p = _check_pair("pose", pose, texture.obs_dim)
+    y = jnp.asarray(p, texture.textons.mu.dtype)
+    _, obs = frame_terms(texture.textons, y)
+    score = obs.sum(axis=1)
+    if role == "start":
+        score = score + init_terms(texture.textons, y)[:, 0]
+    score = np.asarray(score)
+    return int(np.argmax(score)), score
+
+
+def choreograph(
+    texture: Any,
+    key: Array | None,
+    start_pose: Float[ArrayLike, "2 D"],
+    end_pose: Float[ArrayLike, "2 D"],
+    n_frames: int | None = None,
+    *,
+    start_position: Float[ArrayLike, 3] | None = None,
+    start_heading: float | None = None,
+    weighting: Weighting = "whitened",
+    residual: Residual = "blend",
+    decode: bool = True,
+) -> Synthesis:
+    """Virtual choreographer (MT Fig. 1): a motion from a start pose to an end pose.
+
+    The start pair is matched to texton ``u`` as the first frames of a segment and the end
+    pair to texton ``v`` as the last frames of one (:func:`match_texton`). The path from ``u``
+    to ``v`` is planned with :func:`path_of_length` when ``n_frames`` is given (``L ≈
+    n_frames / mean segment length`` textons) or with :func:`shortest_path` (plus sampled
+    self-repeats) otherwise. Key poses are chosen for the textons in between as in
+    :func:`synthesize`; the first texton starts at ``start_pose`` and the last one (``v``)
+    is held at ``end_pose`` in its final two frames, so the motion begins and ends at the
+    given poses (each reprojected into its texton's subspace, ``μ + C Cᵀ(y − μ)``). With
+    ``n_frames`` the segment lengths are rescaled to fit exactly.
+
+    Args:
+        texture: a learned :class:`~mtex_jax._learn.MotionTexture`.
+        key: JAX PRNG key, or ``None`` for the deterministic (mean) motion.
+        start_pose: ``(2, D)`` first two frames.
+        end_pose: ``(2, D)`` last two frames.
+        n_frames: total frames, or ``None`` for the lengths that come with the key poses.
+        start_position: ``(3,)`` root position of frame 0 for decoding (default origin).
+        start_heading: root yaw of frame 0 (radians, default 0).
+        weighting: ``"whitened"`` or ``"paper"``.
+        residual: ``"blend"`` or ``"subspace"`` (see :func:`synthesize`).
+        decode: decode to a :class:`Motion`.
+
+    Returns:
+        a :class:`Synthesis` whose first and last two frames are the given poses.
+    """
+    _check_texture(texture)
+    _check_options(weighting, residual)
+    D = texture.obs_dim
+    s_np = _check_pair("start_pose", start_pose, D)
+    e_np = _check_pair("end_pose", end_pose, D)
+    u, _ = match_texton(texture, s_np, role="start")
+    v, _ = match_texton(texture, e_np, role="end")
+    k_path, k_inst, k_noise = jax.random.split(key, 3) if key is not None else (None,) * 3
+    seg_len = np.asarray(texture.segment_lengths, dtype=np.float64)
+    if n_frames is not None:
+        if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
+            raise TypeError(f"n_frames must be an int, got {n_frames!r}")
+        if n_frames < 4:
+            raise ValueError(f"n_frames must be >= 4, got {n_frames}")
+        L = max(1, min(round(int(n_frames) / seg_len.mean()), (int(n_frames) - 2) // 2))
+        if u != v and L == 1:
+            L = 2
+        body, _ = path_of_length(texture, u, v, L)
+    else:
+        body = shortest_path(texture, u, v, key=k_path)
+    seg_idx = _instances(texture, k_inst, body)
+    lens = seg_len[seg_idx].astype(np.int64)
+    mins = np.full(body.size, 2)
+    mins[-1] = 4
+    if n_frames is not None:
+        lens = _scale_lengths(lens.astype(np.float64), int(n_frames), mins)
+    else:
+        lens = np.maximum(lens, mins)
+    Y = _synthesize_path(
+        texture, k_noise, body, lens, seg_idx, s_np, e_np, True, weighting, residual
+    )
+    seg_out = seg_idx.copy()
+    seg_out[0] = -1
+    return _finish(texture, Y, body, lens, seg_out, start_position, start_heading, decode)
