@@ -104,6 +104,14 @@ def _check_options(weighting: Any, residual: Any) -> None:
         raise ValueError(f"residual must be 'blend' or 'subspace', got {residual!r}")
 
 
+def _check_n_frames(n_frames: Any) -> int:
+    if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
+        raise TypeError(f"n_frames must be an int, got {n_frames!r}")
+    if n_frames < 4:
+        raise ValueError(f"n_frames must be >= 4, got {n_frames}")
+    return int(n_frames)
+
+
 def _check_pair(name: str, pose: Any, D: int) -> np.ndarray:
     try:
         p = np.asarray(pose, dtype=np.float64)
@@ -381,11 +389,7 @@ def synthesize(
     D = texture.obs_dim
     start_np = None if start is None else _check_pair("start", start, D)
     if n_frames is not None:
-        if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
-            raise TypeError(f"n_frames must be an int, got {n_frames!r}")
-        if n_frames < 4:
-            raise ValueError(f"n_frames must be >= 4, got {n_frames}")
-        n_frames = int(n_frames)
+        n_frames = _check_n_frames(n_frames)
     k_path, k_inst, k_noise, k_succ = jax.random.split(key, 4) if key is not None else (None,) * 4
 
     if path is None:
@@ -517,10 +521,7 @@ def choreograph(
     k_path, k_inst, k_noise = jax.random.split(key, 3) if key is not None else (None,) * 3
     seg_len = np.asarray(texture.segment_lengths, dtype=np.float64)
     if n_frames is not None:
-        if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
-            raise TypeError(f"n_frames must be an int, got {n_frames!r}")
-        if n_frames < 4:
-            raise ValueError(f"n_frames must be >= 4, got {n_frames}")
+        n_frames = _check_n_frames(n_frames)
         L = max(1, min(round(int(n_frames) / seg_len.mean()), (int(n_frames) - 2) // 2))
         if u != v and L == 1:
             L = 2
