@@ -500,10 +500,78 @@ def test_frame_and_init_terms_match_scipy():
     d1, o1 = frame_terms(st[1], Y)
     np.testing.assert_allclose(d1, dyn[1], rtol=1e-13)
     np.testing.assert_allclose(o1, obs[1], rtol=1e-13)
-    # chunking over textons does not change the result
-    d3, o3 = frame_terms(st, Y, chunk_size=2)
-    np.testing.assert_allclose(d3, dyn, rtol=1e-13)
-    np.testing.assert_allclose(o3, obs, rtol=1e-13)
+    # the per-texton algorithm (chunk_size) and other time blocks give the same result
+    for kw in (dict(chunk_size=2), dict(chunk_size=1), dict(block_size=1), dict(block_size=5)):
+        d3, o3 = frame_terms(st, Y, **kw)
+        np.testing.assert_allclose(d3, dyn, rtol=1e-12, err_msg=str(kw))
+        np.testing.assert_allclose(o3, obs, rtol=1e-12, err_msg=str(kw))
+
+
+def scipy_frame_terms(p, Y):
+    """Direct per-frame terms of one texton: scipy densities of x_t and of the explicit r_t."""
+    D, k = p["C"].shape
+    T = Y.shape[0]
+    X = (Y - p["mu"]) @ p["C"]
+    dyn = np.zeros(T)
+    for t in range(2, T):
+        mean = p["A1"] @ X[t - 1] + p["A2"] @ X[t - 2] + p["d"]
+        dyn[t] = scipy.stats.multivariate_normal.logpdf(X[t], mean, p["B"] @ p["B"].T)
+    r = (Y - p["mu"]) - X @ p["C"].T
+    obs = -0.5 * ((D - k) * np.log(2 * np.pi * p["sigma2"]) + (r**2).sum(1) / p["sigma2"])
+    return dyn, obs if D > k else np.zeros(T)
+
+
+@pytest.mark.parametrize(
+    ("T", "block_size"),
+    [(1, None), (2, None), (3, None), (3, 1), (10, 3), (10, 4), (10, 10), (10, 64), (41, 8)],
+)
+def test_frame_terms_time_blocks_cover_every_frame(T, block_size):
+    # blocks that do not divide T (the last block overlaps), blocks longer than T, T < 3
+    rng = np.random.default_rng(13)
+    D, k = 5, 2
+    ps = [random_texton_np(rng, D, k) for _ in range(2)]
+    st = stack_textons([to_texton(p) for p in ps])
+    Y = rng.standard_normal((T, D)) + 1.0
+    dyn, obs = frame_terms(st, Y, block_size=block_size)
+    assert dyn.shape == obs.shape == (2, T)
+    for i, p in enumerate(ps):
+        ref_dyn, ref_obs = scipy_frame_terms(p, Y)
+        np.testing.assert_allclose(dyn[i], ref_dyn, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(obs[i], ref_obs, rtol=1e-11, atol=1e-12)
+
+
+def test_frame_terms_ill_conditioned_q_and_k_equal_d():
+    # B with singular values from 1e-3 to 1 (the whitened coordinates rescale by 1/s); then
+    # textons with k = D (no residual dimensions: obs = 0)
+    rng = np.random.default_rng(14)
+    D, k, T = 7, 4, 30
+    p = random_texton_np(rng, D, k)
+    q1 = np.linalg.qr(rng.standard_normal((k, k)))[0]
+    p["B"] = np.linalg.cholesky(q1 @ np.diag([1.0, 0.1, 1e-2, 1e-3]) ** 2 @ q1.T)
+    X = rng.standard_normal((T, k)) * 0.1
+    Y = X @ p["C"].T + p["mu"] + 0.01 * rng.standard_normal((T, D))
+    dyn, obs = frame_terms(to_texton(p), Y)
+    ref_dyn, ref_obs = scipy_frame_terms(p, Y)
+    np.testing.assert_allclose(dyn, ref_dyn, rtol=1e-9)
+    np.testing.assert_allclose(obs, ref_obs, rtol=1e-11)
+    pk = random_texton_np(rng, k, k)
+    Yk = rng.standard_normal((T, k))
+    dyn_k, obs_k = frame_terms(stack_textons([to_texton(pk)] * 2), Yk, block_size=7)
+    np.testing.assert_array_equal(obs_k, 0.0)
+    np.testing.assert_allclose(dyn_k[1], scipy_frame_terms(pk, Yk)[0], rtol=1e-11, atol=1e-12)
+
+
+def test_frame_terms_block_and_chunk_arguments_are_validated():
+    rng = np.random.default_rng(15)
+    st = stack_textons([to_texton(random_texton_np(rng, 4, 2)) for _ in range(2)])
+    Y = rng.standard_normal((12, 4))
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="block_size"):
+            frame_terms(st, Y, block_size=bad)  # type: ignore[arg-type]
+        with pytest.raises(ValueError, match="chunk_size"):
+            frame_terms(st, Y, chunk_size=bad)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="at most one"):
+        frame_terms(st, Y, block_size=4, chunk_size=1)
 
 
 def test_prefix_sum_scores_equal_direct_segment_likelihood():
@@ -551,11 +619,15 @@ def test_frame_terms_do_not_retrace_for_new_data():
     rng = np.random.default_rng(12)
     st = stack_textons([to_texton(random_texton_np(rng, 6, 2)) for _ in range(3)])
     frame_terms(st, rng.standard_normal((40, 6)))
-    n0 = eqx.debug.get_num_traces(_texton._all_terms_traced)
+    frame_terms(st, rng.standard_normal((40, 6)), chunk_size=1)
+    n0 = eqx.debug.get_num_traces(_texton._frame_terms_traced)
+    n0_chunk = eqx.debug.get_num_traces(_texton._all_terms_traced)
     for _ in range(3):
         st2 = jax.tree.map(lambda a: a * 1.01, st)
         frame_terms(st2, rng.standard_normal((40, 6)))
-    assert eqx.debug.get_num_traces(_texton._all_terms_traced) == n0
+        frame_terms(st2, rng.standard_normal((40, 6)), chunk_size=1)
+    assert eqx.debug.get_num_traces(_texton._frame_terms_traced) == n0
+    assert eqx.debug.get_num_traces(_texton._all_terms_traced) == n0_chunk
     fit_texton(rng.standard_normal((40, 6)), state_dim=2)
     n1 = eqx.debug.get_num_traces(_texton._fit_texton_traced)
     for _ in range(3):

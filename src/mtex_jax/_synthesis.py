@@ -38,7 +38,7 @@ from jax import lax
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from mtex_jax._linalg import _solve_frames, block_banded_matvec
+from mtex_jax._linalg import _pair_blocks, _tridiag_solve_rows
 from mtex_jax._texton import Texton
 
 __all__ = ["synthesize_texton"]
@@ -128,13 +128,18 @@ def synthesize_texton(
             )
         poses = _check_frames("fixed poses", fixed[1], (length, D))
         fixed_a = (mask, poses)
-    if key is None:
-        v = jnp.zeros((length - 2, texton.state_dim), texton.mu.dtype)
-    else:
-        v = jax.random.normal(key, (length - 2, texton.state_dim), texton.mu.dtype)
+    # the noise is drawn inside the jitted core: one dispatch per call, not two
     if end_a is None and fixed_a is None:
-        return _noise_driven_jit(texton, v, start_a)
-    return _constrained_jit(texton, v, start_a, end_a, fixed_a, weighting)
+        return _noise_driven_key_jit(texton, key, length, start_a)
+    return _constrained_key_jit(texton, key, length, start_a, end_a, fixed_a, weighting)
+
+
+def _draw_noise(tex: Texton, key: Array | None, length: int) -> Array:
+    """``v_j ~ N(0, I_k)``, ``j = 2 … l−1``: ``jax.random.normal(key, (l−2, k))``; 0 if no key."""
+    shape = (length - 2, tex.C.shape[-1])
+    if key is None:
+        return jnp.zeros(shape, tex.mu.dtype)
+    return jax.random.normal(key, shape, tex.mu.dtype)
 
 
 # --------------------------------------------------------------------------------------------
@@ -156,7 +161,11 @@ def _noise_driven(tex: Texton, v: Array, start: Array) -> Array:
     return tex.mu + states @ tex.C.T
 
 
-_noise_driven_jit = eqx.filter_jit(_noise_driven)
+def _noise_driven_key(tex: Texton, key: Array | None, length: int, start: Array) -> Array:
+    return _noise_driven(tex, _draw_noise(tex, key, length), start)
+
+
+_noise_driven_key_jit = eqx.filter_jit(_noise_driven_key)
 
 
 # --------------------------------------------------------------------------------------------
@@ -184,21 +193,34 @@ class NormalSystem(eqx.Module):
     x_held: Float[Array, "l k"]
 
 
-def _normal_system(
+class _Equations(eqx.Module):
+    """The least-squares problem of constrained synthesis before blocking (internal)."""
+
+    held: Bool[Array, " l"]
+    x_held: Float[Array, "l k"]
+    K: Float[Array, "3k 3k"]
+    rhs: Float[Array, "l k"]
+
+
+def _equations(
     tex: Texton,
     v: Array,
     start: Array,
     end: Array | None,
     fixed: tuple[Array, Array] | None,
     weighting: str,
-) -> NormalSystem:
+) -> _Equations:
+    """Held frames, Gram matrix ``K = [P0, P1, P2]ᵀ[P0, P1, P2]`` and right-hand side.
+
+    See :func:`_normal_system` for the equations.
+    """
     dt = tex.mu.dtype
     k = tex.C.shape[-1]
     length = v.shape[0] + 2
     eye = jnp.eye(k, dtype=dt)
     proj = lambda y: (y.astype(dt) - tex.mu) @ tex.C
-    idx = jnp.arange(length)
-    held = idx < 2
+    idx = np.arange(length)
+    held = jnp.asarray(idx < 2)
     x_held = jnp.concatenate([proj(start), jnp.zeros((length - 2, k), dt)], axis=0)
     if fixed is not None:
         held = held | fixed[0]
@@ -209,34 +231,85 @@ def _normal_system(
         x_end = jnp.concatenate([jnp.zeros((length - 2, k), dt), proj(end)], axis=0)
         x_held = jnp.where(last[:, None], x_end, x_held)
 
-    W = jsl.solve_triangular(tex.B, eye, lower=True) if weighting == "whitened" else eye
-    P0, P1, P2 = W, -W @ tex.A1, -W @ tex.A2  # coefficients of x_j, x_{j−1}, x_{j−2} in eq j
-    c = (W @ tex.d)[None, :] + v @ (W @ tex.B).T  # (l−2, k): W(d + B v_j), j = 2 … l−1
-
-    # which equations exist: eq j for j = 2 … l−1 (frame index of its newest state)
-    eq = (idx >= 2).astype(dt)  # eq[i] = 1 if equation i exists
-    eq_p1 = jnp.concatenate([eq[1:], jnp.zeros((1,), dt)])  # eq[i+1]
-    eq_p2 = jnp.concatenate([eq[2:], jnp.zeros((2,), dt)])  # eq[i+2]
-    s = lambda w, M: w[:, None, None] * M[None]
-    diag = s(eq, P0.T @ P0) + s(eq_p1, P1.T @ P1) + s(eq_p2, P2.T @ P2)
-    off1 = s(eq[1:], P0.T @ P1) + s(eq_p2[:-1], P1.T @ P2)  # block (i+1, i)
-    off2 = s(eq[2:], P0.T @ P2)  # block (i+2, i)
-
-    cf = jnp.concatenate([jnp.zeros((2, k), dt), c], axis=0)  # c at frame index j
-    # h_i = P0ᵀ c_i + P1ᵀ c_{i+1} + P2ᵀ c_{i+2} (padding, not scatter: fast under vmap)
-    U = cf @ jnp.concatenate([P0, P1, P2], axis=1)  # one GEMM, then shifts
+    whitened = weighting == "whitened"
+    W = jsl.solve_triangular(tex.B, eye, lower=True) if whitened else eye
+    P = jnp.concatenate([W, -W @ tex.A1, -W @ tex.A2], axis=1)  # (k, 3k) = [P0, P1, P2]
+    Q = P if whitened else tex.B.T @ P  # noise enters c_j = W d + (W B) v_j
+    # residual of the equations at the held states, u_j = W d − G_j x̂ (+ noise, below)
+    X3 = jnp.concatenate([x_held[2:], x_held[1:-1], x_held[:-2]], axis=1)  # (l−2, 3k)
+    U0 = ((W @ tex.d)[None, :] - X3 @ P.T) @ P
+    U = v.astype(dt) @ Q + U0  # (l−2, 3k): row j−2 = [P0ᵀu_j, P1ᵀu_j, P2ᵀu_j]
     h = (
-        U[:, :k]
-        + jnp.pad(U[1:, k : 2 * k], ((0, 1), (0, 0)))
-        + jnp.pad(U[2:, 2 * k :], ((0, 2), (0, 0)))
+        jnp.pad(U[:, :k], ((2, 0), (0, 0)))
+        + jnp.pad(U[:, k : 2 * k], ((1, 1), (0, 0)))
+        + jnp.pad(U[:, 2 * k :], ((0, 2), (0, 0)))
     )
-    Jx = block_banded_matvec(diag, off1, off2, x_held[:, :, None])[:, :, 0]
-    rhs = jnp.where(held[:, None], x_held, h - Jx)
+    rhs = jnp.where(held[:, None], x_held, h)
+    return _Equations(held=held, x_held=x_held, K=P.T @ P, rhs=rhs)
 
-    diag = jnp.where(held[:, None, None], eye, diag)
+
+def _frame_blocks(K: Array, held: Array, n: int) -> tuple[Array, Array, Array]:
+    """Masked normal-matrix blocks of ``n`` frames: ``(n, k, k)``, ``(n−1, …)``, ``(n−2, …)``.
+
+    ``J_ii = Σ_s [eq i+s exists] P_sᵀ P_s``, ``J_{i+1,i} = [eq i+1] P0ᵀ P1 + [eq i+2] P1ᵀ P2``,
+    ``J_{i+2,i} = [eq i+2] P0ᵀ P2`` (equations ``j = 2 … l−1`` exist, ``l = len(held)``);
+    identity rows and columns at held frames. ``n ≥ l`` pads with held frames.
+    """
+    k = K.shape[0] // 3
+    dt = K.dtype
+    length = held.shape[0]
+    if n > length:
+        held = jnp.concatenate([held, jnp.ones((n - length,), bool)])
+    Kb = lambda a, b: K[a * k : (a + 1) * k, b * k : (b + 1) * k]
+    idx = np.arange(n + 2)
+    eq = ((idx >= 2) & (idx < length)).astype(np.float64)  # equation i exists (static)
+    w = lambda m: jnp.asarray(m, dt)[:, None, None]
+    diag = w(eq[:n]) * Kb(0, 0) + w(eq[1 : n + 1]) * Kb(1, 1) + w(eq[2 : n + 2]) * Kb(2, 2)
+    off1 = w(eq[1:n]) * Kb(0, 1) + w(eq[2 : n + 1]) * Kb(1, 2)  # block (i+1, i)
+    off2 = w(eq[2:n]) * Kb(0, 2)  # block (i+2, i)
+    diag = jnp.where(held[:, None, None], jnp.eye(k, dtype=dt), diag)
     off1 = jnp.where((held[1:] | held[:-1])[:, None, None], 0.0, off1)
     off2 = jnp.where((held[2:] | held[:-2])[:, None, None], 0.0, off2)
-    return NormalSystem(diag=diag, off1=off1, off2=off2, rhs=rhs, held=held, x_held=x_held)
+    return diag, off1, off2
+
+
+def _normal_system(
+    tex: Texton,
+    v: Array,
+    start: Array,
+    end: Array | None,
+    fixed: tuple[Array, Array] | None,
+    weighting: str,
+) -> NormalSystem:
+    """Assemble the masked normal equations ``J' x = g'`` of constrained synthesis.
+
+    Equation ``j = 2 … l−1`` reads ``G_j x = P0 x_j + P1 x_{j−1} + P2 x_{j−2} = c_j`` with
+    ``[P0, P1, P2] = W [I, −A1, −A2]`` and ``c_j = W(d + B v_j)``. With ``x̂`` the held states
+    (zero at free frames) the right-hand side at free frames is
+    ``g_i = (Gᵀ u)_i = P0ᵀ u_i + P1ᵀ u_{i+1} + P2ᵀ u_{i+2}``, ``u_j = c_j − G_j x̂``
+    (``= Gᵀ c − J x̂``, the held states moved to the right), computed as one GEMM
+    ``U = v Q + U₀`` with ``Q = (W B)ᵀ [P0, P1, P2]`` (``= [P0, P1, P2]`` when whitened,
+    ``W B = I``) and three shifted slices of ``U``; only this GEMM depends on the noise ``v``.
+    The blocks are ``J_ii = Σ_s [eq i+s exists] P_sᵀ P_s``, ``J_{i+1,i} = P0ᵀ P1 + P1ᵀ P2``
+    (where the equations exist), ``J_{i+2,i} = P0ᵀ P2``; rows and columns of held frames are
+    replaced by the identity (``g_i = x̂_i`` there).
+
+    Args:
+        tex: the texton.
+        v: ``(l−2, k)`` noise ``v_j``, ``j = 2 … l−1``.
+        start: ``(2, D)`` first two poses.
+        end: ``(2, D)`` last two poses or ``None``.
+        fixed: ``(mask (l,), poses (l, D))`` or ``None``.
+        weighting: ``"whitened"`` (``W = B⁻¹``) or ``"paper"`` (``W = I``).
+
+    Returns:
+        The masked system.
+    """
+    eqs = _equations(tex, v, start, end, fixed, weighting)
+    diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, eqs.held.shape[0])
+    return NormalSystem(
+        diag=diag, off1=off1, off2=off2, rhs=eqs.rhs, held=eqs.held, x_held=eqs.x_held
+    )
 
 
 def _constrained(
@@ -247,15 +320,42 @@ def _constrained(
     fixed: tuple[Array, Array] | None,
     weighting: str,
 ) -> Array:
-    sysm = _normal_system(tex, v, start, end, fixed, weighting)
-    sol = _solve_frames(sysm.diag, sysm.off1, sysm.off2, sysm.rhs[:, :, None])
-    x = jnp.where(sysm.held[:, None], sysm.x_held, sol.x[:, :, 0])
-    x = eqx.error_if(
-        x,
-        ~sol.ok,
+    """Constrained synthesis core: masked normal equations, banded solve, ``μ + C x``.
+
+    ``v`` ``(l−2, k)``; returns ``(l, D)``. The pair blocks of the block-tridiagonal form
+    (:mod:`mtex_jax._linalg`) are built directly from the Gram matrix and the held mask (one
+    pass each, symmetric by construction); an odd length is padded with one held frame. Under
+    ``vmap`` over ``v`` alone (many samples of one texton) the factorisation is shared and the
+    samples become the rows of GEMMs. The output is one GEMM ``[x, 1] [Cᵀ; μ]``.
+    """
+    eqs = _equations(tex, v, start, end, fixed, weighting)
+    length, k = eqs.rhs.shape
+    nb = (length + 1) // 2
+    diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, 2 * nb)
+    pdiag, psub = _pair_blocks(diag, off1, off2)
+    r = jnp.pad(eqs.rhs, ((0, 2 * nb - length), (0, 0))).reshape(nb, 1, 2 * k)
+    x, ok, _ = _tridiag_solve_rows(pdiag, psub, r)
+    x = jnp.where(eqs.held[:, None], eqs.x_held, x.reshape(2 * nb, k)[:length])
+    proj = jnp.concatenate([tex.C.T, tex.mu[None, :]], axis=0)  # (k+1, D)
+    proj = eqx.error_if(
+        proj,
+        ~ok,
         "synthesize_texton: normal matrix not positive definite (non-finite or singular texton B?)",
     )
-    return tex.mu + x @ tex.C.T
+    x1 = jnp.concatenate([x, jnp.ones((length, 1), x.dtype)], axis=1)
+    return x1 @ proj
 
 
-_constrained_jit = eqx.filter_jit(_constrained)
+def _constrained_key(
+    tex: Texton,
+    key: Array | None,
+    length: int,
+    start: Array,
+    end: Array | None,
+    fixed: tuple[Array, Array] | None,
+    weighting: str,
+) -> Array:
+    return _constrained(tex, _draw_noise(tex, key, length), start, end, fixed, weighting)
+
+
+_constrained_key_jit = eqx.filter_jit(_constrained_key)
