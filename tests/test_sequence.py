@@ -3,6 +3,8 @@ embedded clips (SPEC §5)."""
 
 from __future__ import annotations
 
+import itertools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -76,14 +78,89 @@ def test_blend_holds_exact_key_poses_and_random_paths_fill_n_frames(texture):
         assert step[b].max() <= 2 * np.delete(step, b).max() + 1e-9
 
 
-def test_key_poses_follow_observed_transitions(texture):
-    prev = seq._predecessors(texture)
+def _chain_cost_reference(texture, chain):
+    """Σ cost of an instance chain, re-derived: distance of the frames that followed each
+    segment in its training clip to the next key poses; the step's largest such distance
+    where a segment ends its clip."""
+    segs = np.asarray(texture.segments)
+    kp = np.asarray(texture.key_poses).reshape(segs.shape[0], -1)
     lab = np.asarray(texture.key_pose_labels)
-    s = mj.synthesize(texture, jax.random.key(4), n_frames=400)
-    path, segs = np.asarray(s.path), np.asarray(s.key_segments)
-    for m in range(1, len(path)):
-        observed = np.any((lab == path[m]) & (prev == path[m - 1]))
-        assert prev[segs[m]] == path[m - 1] or not observed
+
+    def after(a):
+        for j in range(segs.shape[0]):
+            if segs[j, 0] == segs[a, 0] and segs[j, 1] == segs[a, 1] + segs[a, 2]:
+                return j
+        return None
+
+    total = 0.0
+    for a, b in itertools.pairwise(chain):
+        ja = after(a)
+        if ja is not None:
+            total += float(np.sum((kp[ja] - kp[b]) ** 2))
+        else:  # the largest cost of this step over the segments that have a successor
+            worst = 0.0
+            for a2 in np.flatnonzero(lab == lab[a]):
+                j2 = after(a2)
+                if j2 is not None:
+                    for b2 in np.flatnonzero(lab == lab[b]):
+                        worst = max(worst, float(np.sum((kp[j2] - kp[b2]) ** 2)))
+            total += worst
+    return total
+
+
+def many_instances(texture, seed=0, n_seg=40):
+    """The texture with a synthetic training table: 3 clips, several segments per texton
+    (the embedded-clip texture has one segment per texton, so instance choice is trivial)."""
+    rng = np.random.default_rng(seed)
+    n_t, D = texture.n_textons, texture.obs_dim
+    labels = rng.permutation(np.concatenate([np.arange(n_t), rng.integers(0, n_t, n_seg - n_t)]))
+    lengths = rng.integers(12, 40, n_seg)
+    clip = np.sort(rng.integers(0, 3, n_seg))
+    start = np.zeros(n_seg, np.int64)
+    for c in range(3):
+        sel = np.flatnonzero(clip == c)
+        start[sel] = np.concatenate([[0], np.cumsum(lengths[sel])[:-1]])
+    segs = np.stack([clip, start, lengths, labels], axis=1)
+    kp = texture.key_poses[:1] + rng.standard_normal((n_seg, 2, D))
+    return eqx.tree_at(
+        lambda t: (t.segments, t.segment_lengths, t.key_poses, t.key_pose_labels),
+        texture,
+        (jnp.asarray(segs), jnp.asarray(lengths), jnp.asarray(kp), jnp.asarray(labels)),
+    )
+
+
+def test_key_pose_chain_is_the_minimum_cost_chain(texture):
+    """The dynamic programme over instances equals brute-force enumeration of all chains."""
+    texture = many_instances(texture)
+    lab = np.asarray(texture.key_pose_labels)
+    present = np.unique(lab)
+    rng = np.random.default_rng(3)
+    for _ in range(4):
+        path = rng.choice(present, 4)
+        got = seq._instances(texture, None, path)
+        assert np.all(lab[got] == path)
+        cands = [np.flatnonzero(lab == p) for p in path]
+        best = min(_chain_cost_reference(texture, c) for c in itertools.product(*cands))
+        assert _chain_cost_reference(texture, got) == pytest.approx(best, rel=1e-9, abs=1e-12)
+        keyed = seq._instances(texture, jax.random.key(1), path)
+        assert _chain_cost_reference(texture, keyed) == pytest.approx(best, rel=1e-9, abs=1e-12)
+
+
+def test_key_poses_replay_training_transitions_where_they_exist(texture):
+    """A path of labels of consecutive training segments gets a chain of segments that were
+    adjacent in training (cost zero)."""
+    texture = many_instances(texture, seed=1)
+    segs = np.asarray(texture.segments)
+    nxt = seq._next_segments(texture)
+    i = int(np.flatnonzero((nxt >= 0) & (nxt[np.maximum(nxt, 0)] >= 0))[0])
+    run = [i, int(nxt[i]), int(nxt[nxt[i]])]
+    path = segs[run, 3]
+    got = seq._instances(texture, None, path)
+    assert all(nxt[a] == b for a, b in itertools.pairwise(got))
+    # and the lengths that come with them are the training segments' lengths
+    s = mj.synthesize(texture, None, path=path, decode=False)
+    ks = np.asarray(s.key_segments)
+    np.testing.assert_array_equal(np.asarray(s.lengths), segs[ks, 2])
 
 
 def test_given_path_with_n_frames_rescales_lengths(texture):

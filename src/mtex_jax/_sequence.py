@@ -2,9 +2,13 @@
 
 A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthesised as follows.
 
-1. Key poses first: for every position ``m`` one training segment of texton ``ℓ_m`` is drawn
-   (uniformly among that texton's segments); its first two frames ``K_m (2, D)`` are the key
-   poses and, unless lengths are given, its length is ``l_m``.
+1. Key poses first: for every position ``m`` one training segment of texton ``ℓ_m`` (an
+   *instance*); its first two frames ``K_m (2, D)`` are the key poses and, unless lengths are
+   given, its length is ``l_m``. The instances are chosen together, as the chain whose
+   transitions are closest to transitions seen in training (texton ``ℓ_m`` asked to reach
+   ``K_{m+1}`` where, in its training clip, segment ``m`` reached ``K_next``; cost
+   ``‖K_next − K_{m+1}‖²``, zero for a pair of segments that were adjacent in training),
+   by dynamic programming over the path.
 2. Texton ``m < n`` is synthesised for ``l_m + 2`` frames with its first two frames held at
    ``K_m`` (the given ``start`` pose for ``m = 1``) and its last two held at ``K_{m+1}``,
    reprojected into its own subspace, ``x = C_{ℓ_m}ᵀ(K_{m+1} − μ_{ℓ_m})`` (MT §5.4,
@@ -124,41 +128,78 @@ def _check_pair(name: str, pose: Any, D: int) -> np.ndarray:
     return p
 
 
-def _predecessors(texture: Any) -> np.ndarray:
-    """Label of the training segment just before each segment (``-1`` at a clip start)."""
+def _next_segments(texture: Any) -> np.ndarray:
+    """Index of the training segment directly after each segment (``-1`` at a clip end)."""
     segs = np.asarray(texture.segments)
-    prev = np.full(segs.shape[0], -1, dtype=np.int64)
+    nxt = np.full(segs.shape[0], -1, dtype=np.int64)
     if segs.shape[0] > 1:
         follows = (segs[1:, 0] == segs[:-1, 0]) & (segs[1:, 1] == segs[:-1, 1] + segs[:-1, 2])
-        prev[1:] = np.where(follows, segs[:-1, 3], -1)
-    return prev
+        nxt[:-1] = np.where(follows, np.arange(1, segs.shape[0]), -1)
+    return nxt
+
+
+def _chain_costs(texture: Any, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(|a|, |b|)`` cost of key-pose instance ``b`` following instance ``a``.
+
+    Texton ``ℓ_m`` is synthesised from the key poses of its instance ``a`` (a training
+    segment) to the key poses of the next instance ``b`` in ``len(a)`` frames. In the training
+    clip, segment ``a`` led to the two frames after it, ``K_next(a)``; the cost is the squared
+    distance ``‖K_next(a) − K_b‖²`` of those frames to the key poses asked for (0 when ``b`` is
+    the segment that really followed ``a``: the texton repeats a transition it was trained
+    on). Where ``a`` ends a clip, nothing is known and the cost is the largest of the others.
+    """
+    kp = np.asarray(texture.key_poses, dtype=np.float64)
+    kp = kp.reshape(kp.shape[0], -1)
+    nxt = _next_segments(texture)[a]
+    has = nxt >= 0
+    cost = np.zeros((a.size, b.size))
+    if has.any():
+        x, y = kp[nxt[has]], kp[b]
+        d2 = (x * x).sum(1)[:, None] + (y * y).sum(1)[None, :] - 2.0 * (x @ y.T)
+        d2 = np.maximum(d2, 0.0)
+        d2[nxt[has][:, None] == b[None, :]] = 0.0  # exact zero for the true successor
+        cost[has] = d2
+        cost[~has] = d2.max()
+    return cost
 
 
 def _instances(texture: Any, key: Array | None, path: np.ndarray) -> np.ndarray:
     """One training segment of texton ``path[m]`` for every ``m`` (index into key_poses).
 
-    Candidates for position ``m ≥ 1`` are the segments of ``path[m]`` that followed a segment
-    of ``path[m − 1]`` in the training clips, if there are any (so the key poses texton
-    ``m − 1`` must reach are poses it actually led to), otherwise all segments of ``path[m]``.
-    With a key the choice is uniform among the candidates; without, the candidate whose length
-    is closest to their median.
+    The instances are chosen together, as the chain of minimum total cost
+    ``Σ_m cost(a_m, a_{m+1})`` (:func:`_chain_costs`) by dynamic programming (Viterbi over
+    the path positions, O(Σ_m |cand_m|·|cand_{m+1}|)): wherever the training clips contain a
+    segment of ``ℓ_m`` directly followed by one of ``ℓ_{m+1}``, the chain can use that pair,
+    and texton ``m`` then goes from its key poses to the next ones in the number of frames it
+    took in the training data. Exact ties (several chains of equal cost) are broken towards
+    segments of median length without a key and at random with one.
     """
     lab = np.asarray(texture.key_pose_labels)
-    lengths = np.asarray(texture.segment_lengths)
-    prev = _predecessors(texture)
-    cand = lab[None, :] == path[:, None]  # (n, n_seg)
-    after = cand[1:] & (prev[None, :] == path[:-1, None])
-    use = after.any(axis=1)
-    cand[1:][use] = after[use]
+    lengths = np.asarray(texture.segment_lengths, dtype=np.float64)
+    cands = [np.flatnonzero(lab == p) for p in path]
     if key is None:
-        out = np.empty(path.size, dtype=np.int64)
-        for m in range(path.size):  # host loop over path positions (textons, not frames)
-            idx = np.flatnonzero(cand[m])
-            med = np.median(lengths[idx])
-            out[m] = idx[np.argmin(np.abs(lengths[idx] - med))]
-        return out
-    logits = jnp.where(jnp.asarray(cand), 0.0, -jnp.inf)
-    return np.asarray(jax.random.categorical(key, logits, axis=-1), dtype=np.int64)
+        tie = [np.abs(lengths[c] - np.median(lengths[c])) for c in cands]
+    else:
+        u = np.asarray(jax.random.uniform(key, (path.size, max(c.size for c in cands))))
+        tie = [u[m, : c.size] for m, c in enumerate(cands)]
+    steps = [_chain_costs(texture, cands[m], cands[m + 1]) for m in range(path.size - 1)]
+    scale = max([1.0] + [float(c.max()) for c in steps if c.size])
+    # tie-breaks weigh far less than any cost difference that matters (relative 1e-9)
+    eps = 1e-9 * scale / (path.size * (1.0 + max(float(t.max()) for t in tie)))
+    acc = eps * tie[0]
+    back = []
+    for m, step in enumerate(steps):  # host loop over path positions (textons, not frames)
+        tot = acc[:, None] + step
+        arg = np.argmin(tot, axis=0)
+        back.append(arg)
+        acc = tot[arg, np.arange(tot.shape[1])] + eps * tie[m + 1]
+    out = np.empty(path.size, dtype=np.int64)
+    j = int(np.argmin(acc))
+    out[-1] = cands[-1][j]
+    for m in range(path.size - 2, -1, -1):
+        j = int(back[m][j])
+        out[m] = cands[m][j]
+    return out
 
 
 def _successor(texture: Any, key: Array | None, label: int) -> int:
@@ -402,14 +443,17 @@ def synthesize(
         shortest = int(max(2, np.asarray(texture.segment_lengths).min()))
         n_max = n_frames // shortest + 2
         walk = random_path(texture, k_path, n_max, start=start_texton)
-        seg_idx = _instances(texture, k_inst, walk)
-        drawn = np.asarray(texture.segment_lengths)[seg_idx]
+        walk_seg = _instances(texture, k_inst, walk)
+        drawn = np.asarray(texture.segment_lengths)[walk_seg]
         n = int(np.searchsorted(np.cumsum(drawn), n_frames) + 1)
-        path_np, seg_idx, lens = walk[:n], seg_idx[:n], drawn[:n].copy()
+        lens = drawn[:n].copy()
         lens[-1] = n_frames - int(lens[:-1].sum())
         if lens[-1] < 2 and n > 1:  # fold a too-short tail into the previous texton
             lens[-2] += lens[-1]
-            path_np, seg_idx, lens = path_np[:-1], seg_idx[:-1], lens[:-1]
+            n, lens = n - 1, lens[:-1]
+        # the walk goes on: its next texton and key poses are the successor (n < n_max)
+        path_np, seg_idx = walk[:n], walk_seg[:n]
+        succ_seg = int(walk_seg[n])
     else:
         if start_texton is not None:
             raise ValueError("start_texton is for random paths; the path's first label is given")
@@ -419,7 +463,11 @@ def synthesize(
         if (path_np < 0).any() or (path_np >= n_t).any():
             raise ValueError(f"path has labels outside [0, {n_t})")
         path_np = path_np.astype(np.int64)
-        seg_idx = _instances(texture, k_inst, path_np)
+        # the last texton is held at the key poses of a successor drawn from M (not output),
+        # chosen with the others
+        succ = _successor(texture, k_succ, int(path_np[-1]))
+        chain = _instances(texture, k_inst, np.append(path_np, succ))
+        seg_idx, succ_seg = chain[:-1], int(chain[-1])
         if lengths is not None:
             lens = _check_lengths(lengths, path_np.size)
             if n_frames is not None and int(lens.sum()) != n_frames:
@@ -430,10 +478,8 @@ def synthesize(
                 lens = _scale_lengths(lens, n_frames, np.full(lens.size, 2))
     if (lens < 2).any():
         raise ValueError(f"every texton needs >= 2 frames, got lengths {lens.tolist()}")
-    # the last texton is held at the key poses of a successor drawn from M (not output), so
-    # every texton is constrained at both ends and none runs free (unstable textons diverge)
-    succ = _successor(texture, k_succ, int(path_np[-1]))
-    succ_seg = _instances(texture, k_succ, np.asarray([path_np[-1], succ]))[1]
+    # every texton is constrained at both ends (the last one at its successor's key poses),
+    # so none runs free (unstable textons diverge)
     end_np = np.asarray(texture.key_poses)[succ_seg]
     Y = _synthesize_path(
         texture, k_noise, path_np, lens, seg_idx, start_np, end_np, False, weighting, residual

@@ -1365,13 +1365,14 @@ _score_jit = eqx.filter_jit(SegmentScorer._score)
 def segment_scores(textons: Texton, Y: ArrayLike, *, chunk_size: int = 1) -> SegmentScorer:
     """Per-frame terms of all textons and their prefix sums, for O(1) segment scores.
 
-    Computes ``init``, ``dyn`` and ``obs`` (see :func:`frame_terms`, :func:`init_terms`) in
-    one pass and returns a :class:`SegmentScorer`.
+    Computes ``init``, ``dyn`` and ``obs`` (see :func:`frame_terms`, :func:`init_terms`;
+    ``dyn`` and ``obs`` by the blocked kernel) and returns a :class:`SegmentScorer`.
 
     Args:
         textons: a stack of ``N_t`` textons (a single texton is treated as ``N_t = 1``).
         Y: observations ``(T, D)``, ``T >= 2``.
-        chunk_size: textons vectorised per ``lax.map`` step (static).
+        chunk_size: textons vectorised per ``lax.map`` step of the initial-state terms
+            (static).
 
     Returns:
         :class:`SegmentScorer` with arrays ``(N_t, T)`` / ``(N_t, T+1)``.
@@ -1384,8 +1385,13 @@ def segment_scores(textons: Texton, Y: ArrayLike, *, chunk_size: int = 1) -> Seg
 
 
 def _segment_scores_impl(textons: Texton, Y: Array, chunk: int) -> SegmentScorer:
-    dyn, obs, init = _all_terms_impl(textons, Y, True, True, chunk)
-    assert dyn is not None and obs is not None and init is not None
+    # dynamics and residual terms by the blocked kernel of frame_terms, the initial-state
+    # terms per texton (lax.map, ``chunk`` textons per step)
+    _, _, init = _all_terms_impl(textons, Y, False, True, chunk)
+    itemsize = jnp.dtype(_float_dtype(Y, textons.mu)).itemsize
+    block = _block_frames(None, textons.n_textons, textons.state_dim, itemsize)
+    dyn, obs = _frame_terms_impl(textons, Y, min(block, Y.shape[0]))
+    assert init is not None
     T = dyn.shape[1]
     dyn_off = jnp.mean(dyn[:, 2:], axis=1) if T > 2 else jnp.zeros(dyn.shape[:1], dyn.dtype)
     obs_off = jnp.mean(obs, axis=1)
