@@ -419,6 +419,8 @@ def _label(key: str, r: dict[str, Any]) -> str:
     base, _, threads = key.partition("@")
     if not threads:
         return NAMES[base]
+    if r.get("blas_thread_options") == ["default"]:  # the thread count could not be set
+        return f"{NAMES[base]}, OpenBLAS default threads"
     n = 1 if threads == "1" else r.get("cpu_count", "all")
     return f"{NAMES[base]}, {n} BLAS thread{'s' if n != 1 else ''}"
 
@@ -450,15 +452,13 @@ def write_results(r: dict[str, Any], out: Path) -> None:
         "| --- | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
     for key in sorted(med, key=_row_order):
-        label = _label(key, r)
-        if key in med:
-            runs = ", ".join(f"{t:.3f}" for t in r["times_s"][key])
-            cpu = r["median_cpu_s"][key]
-            ratio = f"{ratios[key]['median']:.2f}×" if key in ratios else "1"
-            lines.append(
-                f"| {label} | {med[key]:.3f} | {r['min_s'][key]:.3f} | {cpu:.3f} | "
-                f"{cpu / med[key]:.2f} | {ratio} | {runs} |"
-            )
+        runs = ", ".join(f"{t:.3f}" for t in r["times_s"][key])
+        cpu = r["median_cpu_s"][key]
+        ratio = f"{ratios[key]['median']:.2f}×" if key in ratios else "1"
+        lines.append(
+            f"| {_label(key, r)} | {med[key]:.3f} | {r['min_s'][key]:.3f} | {cpu:.3f} | "
+            f"{cpu / med[key]:.2f} | {ratio} | {runs} |"
+        )
     lines += [
         "",
         f"- Compile time (not included above): AOT `lower().compile()` "

@@ -157,10 +157,11 @@ def test_key_poses_replay_training_transitions_where_they_exist(texture):
     path = segs[run, 3]
     got = seq._instances(texture, None, path)
     assert all(nxt[a] == b for a, b in itertools.pairwise(got))
-    # and the lengths that come with them are the training segments' lengths
-    s = mj.synthesize(texture, None, path=path, decode=False)
-    ks = np.asarray(s.key_segments)
-    np.testing.assert_array_equal(np.asarray(s.lengths), segs[ks, 2])
+    assert np.all(segs[got, 3] == path)
+    # paths of one and two textons
+    assert seq._instances(texture, None, path[:1]).shape == (1,)
+    two = seq._instances(texture, jax.random.key(0), path[:2])
+    assert nxt[two[0]] == two[1]
 
 
 def test_given_path_with_n_frames_rescales_lengths(texture):

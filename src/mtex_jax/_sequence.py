@@ -99,6 +99,12 @@ def _check_texture(texture: Any) -> None:
         raise ValueError(
             f"texton(s) {missing.tolist()} have no training segments (no key poses to start from)"
         )
+    short = np.flatnonzero(np.asarray(texture.segment_lengths) < 2)
+    if short.size:
+        raise ValueError(
+            f"training segments {short[:5].tolist()} are shorter than 2 frames "
+            "(MotionTexture.segment_lengths)"
+        )
 
 
 def _check_options(weighting: Any, residual: Any) -> None:
@@ -150,6 +156,7 @@ def _chain_costs(texture: Any, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """
     kp = np.asarray(texture.key_poses, dtype=np.float64)
     kp = kp.reshape(kp.shape[0], -1)
+    kp = kp - kp.mean(axis=0)  # centred: the expanded squared distance below cancels less
     nxt = _next_segments(texture)[a]
     has = nxt >= 0
     cost = np.zeros((a.size, b.size))
@@ -182,19 +189,17 @@ def _instances(texture: Any, key: Array | None, path: np.ndarray) -> np.ndarray:
     else:
         u = np.asarray(jax.random.uniform(key, (path.size, max(c.size for c in cands))))
         tie = [u[m, : c.size] for m, c in enumerate(cands)]
-    steps = [_chain_costs(texture, cands[m], cands[m + 1]) for m in range(path.size - 1)]
-    scale = max([1.0] + [float(c.max()) for c in steps if c.size])
-    # tie-breaks weigh far less than any cost difference that matters (relative 1e-9)
-    eps = 1e-9 * scale / (path.size * (1.0 + max(float(t.max()) for t in tie)))
-    acc = eps * tie[0]
+    # Viterbi on (total cost, total tie-break) compared lexicographically
+    acc, acc_tie = np.zeros(cands[0].size), tie[0].astype(np.float64)
     back = []
-    for m, step in enumerate(steps):  # host loop over path positions (textons, not frames)
-        tot = acc[:, None] + step
-        arg = np.argmin(tot, axis=0)
+    for m in range(path.size - 1):  # host loop over path positions (textons, not frames)
+        tot = acc[:, None] + _chain_costs(texture, cands[m], cands[m + 1])
+        arg = np.lexsort((np.broadcast_to(acc_tie[:, None], tot.shape).T, tot.T))[:, 0]
         back.append(arg)
-        acc = tot[arg, np.arange(tot.shape[1])] + eps * tie[m + 1]
+        acc = tot[arg, np.arange(tot.shape[1])]
+        acc_tie = acc_tie[arg] + tie[m + 1]
     out = np.empty(path.size, dtype=np.int64)
-    j = int(np.argmin(acc))
+    j = int(np.lexsort((acc_tie, acc))[0])
     out[-1] = cands[-1][j]
     for m in range(path.size - 2, -1, -1):
         j = int(back[m][j])
@@ -396,14 +401,17 @@ def synthesize(
 
     * ``path=None``: a random walk on ``M`` (first texton from ``π`` or ``start_texton``)
       until ``n_frames`` frames are covered; the last texton is shortened to fit.
-    * ``path`` given, ``n_frames=None``: lengths drawn with the key poses (or ``lengths``).
-    * ``path`` and ``n_frames`` given: the drawn lengths are rescaled to sum to ``n_frames``
+    * ``path`` given, ``n_frames=None``: the lengths of the key poses' training segments (or
+      ``lengths``).
+    * ``path`` and ``n_frames`` given: those lengths are rescaled to sum to ``n_frames``
       (each texton extrapolated to its new length, MT Fig. 10).
 
     Args:
         texture: a learned :class:`~mtex_jax._learn.MotionTexture`.
-        key: JAX PRNG key; ``None`` = deterministic: zero noise (conditional means) and, per
-            texton, the training segment of median length (a random path needs a key).
+        key: JAX PRNG key; ``None`` = deterministic: zero noise (conditional means), the most
+            probable successor, and ties between equally good key-pose chains broken towards
+            median segment lengths (a random path needs a key). With a given path the key
+            poses and lengths depend on the key only through such ties and the successor.
         path: ``(n,)`` texton labels, or ``None``.
         n_frames: number of output frames.
         lengths: ``(n,)`` frames per texton (with ``path``), instead of drawn ones.
