@@ -137,9 +137,14 @@ def test_learn_and_segment_commands(tmp_path, cmu_files):
         "8",
         "--max-iter",
         "3",
+        "--min-segments",
+        "2",
     )
     assert r.returncode == 0, r.stderr[-2000:]
     assert "textons:" in r.stdout and "[mtex learn] iter" in r.stdout
+    learned = mj.load_texture(model)
+    assert learned.config.min_segments == 2
+    assert np.bincount(np.asarray(learned.key_pose_labels)).min() >= 2
     png = tmp_path / "timeline.png"
     r = run_cli("segment", str(model), str(cmu_files[1]), "-o", str(png))
     assert r.returncode == 0, r.stderr[-2000:]
@@ -148,6 +153,8 @@ def test_learn_and_segment_commands(tmp_path, cmu_files):
         assert im.size[0] > 500
     r = run_cli("learn", str(cmu_files[0]), "-o", str(model), "--tmin", "0")
     assert r.returncode == 2 and "tmin" in r.stderr and "Traceback" not in r.stderr
+    r = run_cli("learn", str(cmu_files[0]), "-o", str(model), "--min-segments", "0")
+    assert r.returncode == 2 and "min_segments" in r.stderr and "Traceback" not in r.stderr
     r = run_cli("segment", str(tmp_path / "absent.npz"), str(cmu_files[0]))
     assert r.returncode == 2 and "no such file" in r.stderr
 

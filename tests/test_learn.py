@@ -250,3 +250,25 @@ def test_learn_float32_smoke():
     for leaf in jax.tree.leaves(mt.textons):
         assert np.all(np.isfinite(np.asarray(leaf)))
     assert np.all(np.isfinite(np.asarray(mt.history)))
+
+
+def test_min_segments_prunes_rarely_used_textons():
+    rng = np.random.default_rng(3)
+    Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=30)
+    parts = [Y[: len(Y) // 2], Y[len(Y) // 2 :]]
+    base = dict(tmin=40, tmax=120, state_dim=4, threshold=0.05, max_iter=6)
+    loose = learn(parts, LearnConfig(**base))
+    tight = learn(parts, LearnConfig(**base, min_segments=3))
+    c_loose = np.bincount(np.asarray(loose.key_pose_labels))
+    c_tight = np.bincount(np.asarray(tight.key_pose_labels), minlength=tight.n_textons)
+    assert c_loose.min() < 3  # this setting does leave rarely used textons without pruning
+    assert c_tight.min() >= 3 and tight.n_textons < loose.n_textons
+    segs = np.asarray(tight.segments)
+    for s, y in enumerate(parts):  # every frame is still segmented, in order
+        mine = segs[segs[:, 0] == s]
+        assert mine[:, 2].sum() == len(y)
+        np.testing.assert_array_equal(mine[1:, 1], mine[:-1, 1] + mine[:-1, 2])
+    np.testing.assert_allclose(np.asarray(tight.M).sum(axis=1), 1.0, rtol=1e-12)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="min_segments"):
+            LearnConfig(min_segments=bad)

@@ -24,7 +24,11 @@ def salsa(cmu_motions):
     # the first frames of every CMU clip carry a capture artefact (a ~0.3 m jump, see the
     # foundation issue): trim 4 frames at 120 Hz before resampling
     clips = [m[4:].resample(FPS) for m in cmu_motions]
-    cfg = mj.LearnConfig(tmin=60, tmax=180, state_dim=12, threshold=1.0, max_iter=6)
+    # textons fitted on one or two 1 s segments have unreliable dynamics (spectral radius up
+    # to 1.85 without pruning): prune textons with fewer than 3 training segments
+    cfg = mj.LearnConfig(
+        tmin=60, tmax=180, state_dim=12, threshold=0.3, max_iter=10, min_segments=3
+    )
     return mj.learn(clips, cfg), clips
 
 
@@ -61,5 +65,8 @@ def test_fig8_boundaries_smooth_independent_neighbours_jump(salsa):
         f"boundary median / max:\n{np.array2string(rows, precision=4)}"
     )
     assert np.all(rows[:, 0] <= p99)  # typical constrained boundary: within real jumps
+    assert np.all(rows[:, 2] <= p99)  # the worst boundary of the conditional mean: too
     assert np.all(rows[:, 3] > 2 * p99)  # typical independent boundary: far outside them
     assert np.all(rows[:, 1] < rows[:, 4])  # the worst constrained < the worst independent
+    # (the worst boundary of a *sampled* synthesis carries the texton noise: reported above;
+    # even real data would exceed its own p99 somewhere in 17 boundaries with p ≈ 0.16)

@@ -102,6 +102,7 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         n_textons=args.textons,
         max_iter=args.max_iter,
         fps=float(fps),
+        min_segments=args.min_segments,
     )
     print(
         f"learning from {len(motions)} clip(s), {sum(m.duration for m in motions):.1f} s of "
@@ -386,6 +387,12 @@ def _parser() -> argparse.ArgumentParser:
         help="resample the clips to this frame rate first (default: theirs)",
     )
     s.add_argument("--max-iter", type=int, default=20, help="most EM iterations (default 20)")
+    s.add_argument(
+        "--min-segments",
+        type=int,
+        default=1,
+        help="prune textons with fewer training segments (default 1: no pruning)",
+    )
     s.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
     s.set_defaults(func=_cmd_learn)
 

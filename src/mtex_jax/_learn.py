@@ -77,6 +77,10 @@ class LearnConfig:
             (see :func:`fit_texton`).
         shard: split sequences across all JAX devices when there is more than one.
         bic_thresholds: thresholds to choose from by BIC (see :func:`bic_select`).
+        min_segments: prune textons that the segmentation gives fewer training segments: they
+            are dropped before the next M-step and their frames re-segmented by the others
+            (a texton fitted on one 60-frame segment has unreliable dynamics). ``1`` = no
+            pruning (the paper).
     """
 
     tmin: int = 60
@@ -95,8 +99,15 @@ class LearnConfig:
     init_prior_weight: float = 4.0
     shard: bool = True
     bic_thresholds: tuple[float, ...] | None = None
+    min_segments: int = 1
 
     def __post_init__(self) -> None:
+        if isinstance(self.min_segments, bool) or not isinstance(self.min_segments, int):
+            raise ValueError(
+                f"LearnConfig.min_segments must be a positive integer, got {self.min_segments!r}"
+            )
+        if self.min_segments < 1:
+            raise ValueError(f"LearnConfig.min_segments must be >= 1, got {self.min_segments}")
         if not isinstance(self.tmin, int) or self.tmin < 3:
             raise ValueError(f"LearnConfig.tmin must be an integer >= 3, got {self.tmin!r}")
         if self.tmax is not None and (not isinstance(self.tmax, int) or self.tmax < self.tmin):
@@ -451,6 +462,16 @@ def _transitions(segs: Segs, n_textons: int, alpha: float) -> tuple[np.ndarray, 
     return M, pi
 
 
+def _underused(segs: Segs, min_segments: int) -> np.ndarray:
+    """Labels with fewer than ``min_segments`` segments (never all of them: the texton with
+    the most segments is kept)."""
+    labels, counts = np.unique(segs[:, 3], return_counts=True)
+    few = counts < min_segments
+    if few.all():
+        few[np.argmax(counts)] = False
+    return labels[few]
+
+
 def _relabel(segs: Segs) -> tuple[Segs, np.ndarray]:
     """Drop unused labels: returns new segments and the old label of each new label."""
     used = np.unique(segs[:, 3])
@@ -797,6 +818,7 @@ def _em(
     segs, _ = _relabel(segs)
     history: list[tuple[float, float]] = []
     best: tuple[float, Texton, np.ndarray, np.ndarray, Segs] | None = None
+    pruned_prev = False
     for it in range(config.max_iter + 1):
         n_t = int(segs[:, 3].max()) + 1
         tex, M, pi = run.m_step(segs, n_t)
@@ -806,8 +828,13 @@ def _em(
         lab_new, _ = _masks(new_segs, run.n_real, run.T)
         changed = int(np.sum(lab_old != lab_new))  # frames whose texton changed
         history.append((obj_m, obj_e))
-        if best is None or obj_e > best[0]:
-            best = (obj_e, tex, M, pi, new_segs)
+        # pruning: a segmentation with under-used textons is not a candidate result (unless
+        # no iteration is left); their segments are dropped and re-segmented next iteration
+        prune = _underused(new_segs, config.min_segments)
+        last = it == config.max_iter
+        if prune.size == 0 or (last and best is None):
+            if best is None or obj_e > best[0]:
+                best = (obj_e if prune.size == 0 else -np.inf, tex, M, pi, new_segs)
         info = {
             "iteration": it,
             "n_textons": n_t,
@@ -825,9 +852,20 @@ def _em(
             )
         if callback is not None:
             callback(info)
-        gain = obj_e - history[-2][1] if len(history) > 1 else np.inf
-        if changed == 0 or it == config.max_iter or gain < config.tol * n_frames:
+        # the objective of the first segmentation after a pruning is not compared (it drops)
+        gain = obj_e - history[-2][1] if len(history) > 1 and not pruned_prev else np.inf
+        converged = changed == 0 or gain < config.tol * n_frames
+        pruned_prev = prune.size > 0
+        if last or (converged and prune.size == 0):
             break
+        if prune.size:
+            if verbose:
+                print(
+                    f"[mtex learn] pruning {prune.size} texton(s) with < "
+                    f"{config.min_segments} segments",
+                    flush=True,
+                )
+            new_segs = new_segs[~np.isin(new_segs[:, 3], prune)]
         segs, _ = _relabel(new_segs)
 
     assert best is not None
