@@ -77,10 +77,10 @@ class LearnConfig:
             (see :func:`fit_texton`).
         shard: split sequences across all JAX devices when there is more than one.
         bic_thresholds: thresholds to choose from by BIC (see :func:`bic_select`).
-        min_segments: prune textons that the segmentation gives fewer training segments: they
-            are dropped before the next M-step and their frames re-segmented by the others
-            (a texton fitted on one 60-frame segment has unreliable dynamics). ``1`` = no
-            pruning (the paper).
+        min_segments: prune textons that the segmentation gives fewer training segments: after
+            each E-step they are removed (``M``, ``π`` renormalised) and the clips segmented
+            again by the remaining textons, which EM then refits (a texton fitted on one
+            60-frame segment has unreliable dynamics). ``1`` = no pruning (the paper).
     """
 
     tmin: int = 60
@@ -818,54 +818,53 @@ def _em(
     segs, _ = _relabel(segs)
     history: list[tuple[float, float]] = []
     best: tuple[float, Texton, np.ndarray, np.ndarray, Segs] | None = None
-    pruned_prev = False
     for it in range(config.max_iter + 1):
         n_t = int(segs[:, 3].max()) + 1
         tex, M, pi = run.m_step(segs, n_t)
         obj_m = run.objective(tex, M, pi, segs)
         new_segs, obj_e = run.e_step(tex, M, pi)
+        # pruning: textons with fewer than min_segments segments are removed from the model
+        # (M, π renormalised) and every clip is segmented again by the others, until none is
+        # left; the model and segmentation stay complete and consistent
+        n_pruned = 0
+        while (prune := _underused(new_segs, config.min_segments)).size:
+            keep = np.setdiff1d(np.arange(M.shape[0]), prune)
+            tex = jax.tree.map(lambda a, keep=keep: a[keep], tex)
+            M = M[np.ix_(keep, keep)]
+            M = M / M.sum(axis=1, keepdims=True)
+            pi = pi[keep] / pi[keep].sum()
+            new_segs, obj_e = run.e_step(tex, M, pi)
+            n_pruned += prune.size
         lab_old, _ = _masks(segs, run.n_real, run.T)
         lab_new, _ = _masks(new_segs, run.n_real, run.T)
         changed = int(np.sum(lab_old != lab_new))  # frames whose texton changed
         history.append((obj_m, obj_e))
-        # pruning: a segmentation with under-used textons is not a candidate result (unless
-        # no iteration is left); their segments are dropped and re-segmented next iteration
-        prune = _underused(new_segs, config.min_segments)
-        last = it == config.max_iter
-        if prune.size == 0 or (last and best is None):
-            if best is None or obj_e > best[0]:
-                best = (obj_e if prune.size == 0 else -np.inf, tex, M, pi, new_segs)
+        if best is None or obj_e > best[0]:
+            best = (obj_e, tex, M, pi, new_segs)
         info = {
             "iteration": it,
             "n_textons": n_t,
+            "pruned": n_pruned,
             "objective_m": obj_m,
             "objective_e": obj_e,
             "changed": changed,
             "seconds": time.perf_counter() - t0,
         }
         if verbose:
+            pruned = f"  pruned {n_pruned} texton(s)" if n_pruned else ""
             print(
                 f"[mtex learn] iter {it:2d}  textons {n_t:3d}  objective/frame "
                 f"{obj_m / n_frames:9.4f} (M) {obj_e / n_frames:9.4f} (E)  "
-                f"frames relabelled {changed:6d}  {info['seconds']:6.1f} s",
+                f"frames relabelled {changed:6d}  {info['seconds']:6.1f} s{pruned}",
                 flush=True,
             )
         if callback is not None:
             callback(info)
-        # the objective of the first segmentation after a pruning is not compared (it drops)
-        gain = obj_e - history[-2][1] if len(history) > 1 and not pruned_prev else np.inf
+        gain = obj_e - history[-2][1] if len(history) > 1 else np.inf
         converged = changed == 0 or gain < config.tol * n_frames
-        pruned_prev = prune.size > 0
-        if last or (converged and prune.size == 0):
+        # after a pruning the remaining textons are refitted to their new segments first
+        if it == config.max_iter or (converged and n_pruned == 0):
             break
-        if prune.size:
-            if verbose:
-                print(
-                    f"[mtex learn] pruning {prune.size} texton(s) with < "
-                    f"{config.min_segments} segments",
-                    flush=True,
-                )
-            new_segs = new_segs[~np.isin(new_segs[:, 3], prune)]
         segs, _ = _relabel(new_segs)
 
     assert best is not None
