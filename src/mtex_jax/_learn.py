@@ -472,6 +472,18 @@ def _underused(segs: Segs, min_segments: int) -> np.ndarray:
     return labels[few]
 
 
+def _keep_textons(
+    tex: Texton, M: np.ndarray, pi: np.ndarray, keep: np.ndarray
+) -> tuple[Texton, np.ndarray, np.ndarray]:
+    """The model restricted to textons ``keep`` (``M`` rows and ``π`` renormalised)."""
+    M = M[np.ix_(keep, keep)]
+    return (
+        jax.tree.map(lambda a: a[keep], tex),
+        M / M.sum(axis=1, keepdims=True),
+        pi[keep] / pi[keep].sum(),
+    )
+
+
 def _relabel(segs: Segs) -> tuple[Segs, np.ndarray]:
     """Drop unused labels: returns new segments and the old label of each new label."""
     used = np.unique(segs[:, 3])
@@ -828,11 +840,7 @@ def _em(
         # left; the model and segmentation stay complete and consistent
         n_pruned = 0
         while (prune := _underused(new_segs, config.min_segments)).size:
-            keep = np.setdiff1d(np.arange(M.shape[0]), prune)
-            tex = jax.tree.map(lambda a, keep=keep: a[keep], tex)
-            M = M[np.ix_(keep, keep)]
-            M = M / M.sum(axis=1, keepdims=True)
-            pi = pi[keep] / pi[keep].sum()
+            tex, M, pi = _keep_textons(tex, M, pi, np.setdiff1d(np.arange(M.shape[0]), prune))
             new_segs, obj_e = run.e_step(tex, M, pi)
             n_pruned += prune.size
         lab_old, _ = _masks(segs, run.n_real, run.T)
@@ -872,11 +880,8 @@ def _em(
     tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)  # drop the capacity padding
     used = np.unique(final_segs[:, 3])
     if len(used) < M.shape[0]:  # a texton that lost all its segments: remove it
-        tex = jax.tree.map(lambda a: a[used], tex)
+        tex, M, pi = _keep_textons(tex, M, pi, used)
         final_segs, _ = _relabel(final_segs)
-        M = M[np.ix_(used, used)]
-        M = M / M.sum(axis=1, keepdims=True)
-        pi = pi[used] / pi[used].sum()
     key = np.stack([np.stack([ys[s][b], ys[s][b + 1]]) for s, b, _, _ in final_segs])
     return MotionTexture(
         textons=tex,

@@ -144,7 +144,7 @@ def _next_segments(texture: Any) -> np.ndarray:
     return nxt
 
 
-def _chain_costs(texture: Any, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _chain_costs(kp: np.ndarray, nxt: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``(|a|, |b|)`` cost of key-pose instance ``b`` following instance ``a``.
 
     Texton ``ℓ_m`` is synthesised from the key poses of its instance ``a`` (a training
@@ -153,11 +153,11 @@ def _chain_costs(texture: Any, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     distance ``‖K_next(a) − K_b‖²`` of those frames to the key poses asked for (0 when ``b`` is
     the segment that really followed ``a``: the texton repeats a transition it was trained
     on). Where ``a`` ends a clip, nothing is known and the cost is the largest of the others.
+
+    ``kp``: ``(n_seg, 2D)`` key poses, centred (the expanded squared distance below then
+    cancels less); ``nxt``: :func:`_next_segments`.
     """
-    kp = np.asarray(texture.key_poses, dtype=np.float64)
-    kp = kp.reshape(kp.shape[0], -1)
-    kp = kp - kp.mean(axis=0)  # centred: the expanded squared distance below cancels less
-    nxt = _next_segments(texture)[a]
+    nxt = nxt[a]
     has = nxt >= 0
     cost = np.zeros((a.size, b.size))
     if has.any():
@@ -189,11 +189,15 @@ def _instances(texture: Any, key: Array | None, path: np.ndarray) -> np.ndarray:
     else:
         u = np.asarray(jax.random.uniform(key, (path.size, max(c.size for c in cands))))
         tie = [u[m, : c.size] for m, c in enumerate(cands)]
+    kp = np.asarray(texture.key_poses, dtype=np.float64)
+    kp = kp.reshape(kp.shape[0], -1)
+    kp = kp - kp.mean(axis=0)
+    nxt = _next_segments(texture)
     # Viterbi on (total cost, total tie-break) compared lexicographically
     acc, acc_tie = np.zeros(cands[0].size), tie[0].astype(np.float64)
     back = []
     for m in range(path.size - 1):  # host loop over path positions (textons, not frames)
-        tot = acc[:, None] + _chain_costs(texture, cands[m], cands[m + 1])
+        tot = acc[:, None] + _chain_costs(kp, nxt, cands[m], cands[m + 1])
         arg = np.lexsort((np.broadcast_to(acc_tie[:, None], tot.shape).T, tot.T))[:, 0]
         back.append(arg)
         acc = tot[arg, np.arange(tot.shape[1])]
