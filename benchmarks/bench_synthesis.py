@@ -11,8 +11,9 @@ Length ``l = 172``, ``k = 15``, ``D = 60``, float64; first two, last two frames 
   documented JAX option a user may choose (separate row; the threefry row is the reference);
 * ``noise only``: ``jax.vmap(jax.random.normal)`` for the same keys alone — context for how
   much of the vmap time is the random number generation, not part of the synthesis figures;
-* ``dense solve``: the same masked normal equations assembled as a dense ``(l·k)²`` matrix and
-  solved with ``jnp.linalg.solve`` (jit), one texton — the ratio the banded solver buys.
+* ``dense solve``: the same sample with the masked normal matrix assembled as a dense
+  ``(l·k)²`` matrix, a dense Cholesky factorisation and dense triangular solves (jit), one
+  texton — the ratio the banded solver buys.
 
 Compile time is measured separately (AOT ``lower().compile()``); then a warm-up call, then
 ``--repeats`` interleaved rounds of timed calls with ``block_until_ready`` (single-texton rows:
@@ -48,11 +49,11 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 try:
-    from mtex_jax._synthesis import _normal_system, synthesize_texton
+    from mtex_jax._synthesis import _constrained, _normal_system, synthesize_texton
     from mtex_jax._texton import Texton
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-    from mtex_jax._synthesis import _normal_system, synthesize_texton
+    from mtex_jax._synthesis import _constrained, _normal_system, synthesize_texton
     from mtex_jax._texton import Texton
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -79,20 +80,25 @@ def random_texton(rng: np.random.Generator, D: int, k: int) -> Texton:
 
 
 def dense_synthesis(tex: Texton, key: jax.Array, length: int, start, end) -> jax.Array:
-    """Same masked normal equations, assembled densely and solved with ``jnp.linalg.solve``."""
+    """The same sample with dense linear algebra: the masked normal matrix ``J`` assembled as
+    a dense ``(l·k)²`` matrix, ``J = L Lᵀ`` by a dense Cholesky, ``x = J⁻¹ g + L⁻ᵀ ξ`` with the
+    same ``ξ`` (the key's normals) as :func:`synthesize_texton`."""
     k = tex.C.shape[-1]
-    v = jax.random.normal(key, (length - 2, k), tex.mu.dtype)
-    s = _normal_system(tex, v, start, end, None, "whitened")
+    dt = tex.mu.dtype
+    xi = jax.random.normal(key, (2 * ((length + 1) // 2), k), dt)[:length]
+    s = _normal_system(tex, jnp.zeros((length - 2, k), dt), start, end, None, "whitened")
     n = length
-    J = jnp.zeros((n, k, n, k), tex.mu.dtype)
+    J = jnp.zeros((n, k, n, k), dt)
     i = jnp.arange(n)
     J = J.at[i, :, i, :].set(s.diag)
     J = J.at[i[1:], :, i[:-1], :].set(s.off1)
     J = J.at[i[:-1], :, i[1:], :].set(jnp.swapaxes(s.off1, -1, -2))
     J = J.at[i[2:], :, i[:-2], :].set(s.off2)
     J = J.at[i[:-2], :, i[2:], :].set(jnp.swapaxes(s.off2, -1, -2))
-    x = jnp.linalg.solve(J.reshape(n * k, n * k), s.rhs.reshape(n * k)).reshape(n, k)
-    x = jnp.where(s.held[:, None], s.x_held, x)
+    Lc = jnp.linalg.cholesky(J.reshape(n * k, n * k))
+    mean = jax.scipy.linalg.cho_solve((Lc, True), s.rhs.reshape(n * k))
+    x = mean + jax.scipy.linalg.solve_triangular(Lc.T, xi.reshape(n * k), lower=False)
+    x = jnp.where(s.held[:, None], s.x_held, x.reshape(n, k))
     return tex.mu + x @ tex.C.T
 
 
@@ -136,7 +142,15 @@ def main() -> None:
     one = jax.jit(lambda kk: synthesize_texton(tex, kk, L, start, end))
     batch = jax.jit(jax.vmap(lambda kk: synthesize_texton(tex, kk, L, start, end)))
     dense = jax.jit(lambda kk: dense_synthesis(tex, kk, L, start, end))
-    noise = jax.jit(jax.vmap(lambda kk: jax.random.normal(kk, (L - 2, k), jnp.float64)))
+    n_xi = 2 * ((L + 1) // 2)  # rows of state noise ξ drawn per sample (synthesize_texton)
+    noise = jax.jit(jax.vmap(lambda kk: jax.random.normal(kk, (n_xi, k), jnp.float64)))
+
+    # the perturb-and-MAP form of the same law (equation noise v, SPEC §5), for comparison
+    def pam(kk: jax.Array) -> jax.Array:
+        v = jax.random.normal(kk, (L - 2, k), jnp.float64)
+        return _constrained(tex, v, start, end, None, "whitened")
+
+    pam_one, pam_batch = jax.jit(pam), jax.jit(jax.vmap(pam))
 
     compile_s = {}
     for name, f, a in (
@@ -161,7 +175,8 @@ def main() -> None:
     assert np.allclose(yv[0], np.asarray(one(keys[0])), rtol=1e-10, atol=1e-10)
     assert np.allclose(yr[0], np.asarray(one(keys_rbg[0])), rtol=1e-10, atol=1e-10)
     held_err = float(np.abs(yb[[0, 1, -2, -1]] - Y).max())
-    jax.block_until_ready((noise(keys), noise(keys_rbg), one(key_rbg)))
+    jax.block_until_ready((noise(keys), noise(keys_rbg), one(key_rbg), pam_batch(keys)))
+    yq = np.asarray(pam_batch(keys))
 
     # name -> (function, argument, divisor, rounds); single calls are timed ``--per-round``
     # times per round (after one untimed call, so that a variant is not timed right after the
@@ -184,6 +199,8 @@ def main() -> None:
             nb,
             args.repeats,
         ),
+        "extra: perturb-and-MAP form (equation noise v), jit": (pam_one, key, 1, args.repeats),
+        f"extra: perturb-and-MAP form, vmap {nb} (per texton)": (pam_batch, keys, nb, args.repeats),
         "dense solve (jit)": (dense, key, 1, args.dense_repeats),
     }
     wall: dict[str, list[float]] = {n: [] for n in rows}
@@ -260,6 +277,11 @@ def main() -> None:
             "vmap_per_texton_ms (threefry keys)": per_v <= 1e-4,
         },
     }
+    # largest standardised gap between the two forms' sample means over all free coordinates
+    se = np.sqrt((yv.var(0) + yq.var(0)) / nb)
+    free = se > 1e-12
+    mean_gap_z = float(np.max(np.abs(yv.mean(0) - yq.mean(0))[free] / se[free]))
+    result["max_standardised_mean_gap_state_vs_perturb_and_map"] = mean_gap_z
     if args.no_write:
         return
     RESULTS.mkdir(exist_ok=True)
@@ -295,6 +317,12 @@ warm-up; in each round every variant is timed once (single-texton rows: one unti
 - target ≤ 0.1 ms per texton in a vmap batch of {nb} (default threefry keys): **{ok2}**
   (median {per_v * 1e3:.4f} ms); with rbg keys {rbg_v * 1e3:.4f} ms; drawing the noise alone
   (`jax.random.normal`, threefry) takes {noise_v * 1e3:.4f} ms per texton of that
+- sampling: `x̄ + L⁻ᵀξ` in state space (ξ standard normal, `L Lᵀ` the banded Cholesky
+  factorisation of the whitened normal matrix), the same conditional law as the
+  perturb-and-MAP form (noise `v` in the dynamics equations, "extra" rows) without the noise
+  right-hand side and its forward substitution; over the {nb} samples of each form the
+  largest standardised difference of the sample means, over all {int(free.sum())} free
+  coordinates, is {mean_gap_z:.2f} standard errors
 - the paper: 25–35 ms per texton
 - dense `(l·k)²` solve / banded (jit): **{dense_med / single:.0f}×**
 - banded vs dense result: relative difference {rel:.2e}; held frames error {held_err:.1e}

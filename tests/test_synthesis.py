@@ -41,8 +41,10 @@ def as_np(tex: Texton) -> dict[str, np.ndarray]:
     return {f: np.asarray(getattr(tex, f)) for f in ("mu", "C", "A1", "A2", "d", "B")}
 
 
-def dense_lstsq(tex: Texton, v: np.ndarray, x_held: np.ndarray, held: np.ndarray, whiten: bool):
-    """Dense reference: stack the l−2 dynamics equations, move held states right, lstsq."""
+def dense_equations(
+    tex: Texton, v: np.ndarray, x_held: np.ndarray, held: np.ndarray, whiten: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """The l−2 (weighted) dynamics equations ``G x_free = r`` densely, held states moved right."""
     t = as_np(tex)
     length, k = x_held.shape
     W = np.linalg.inv(t["B"]) if whiten else np.eye(k)
@@ -58,10 +60,32 @@ def dense_lstsq(tex: Texton, v: np.ndarray, x_held: np.ndarray, held: np.ndarray
                 r[rows] -= W @ coef @ x_held[frame]
             else:
                 G[rows, col[frame] * k : (col[frame] + 1) * k] = W @ coef
+    return G, r
+
+
+def dense_lstsq(tex: Texton, v: np.ndarray, x_held: np.ndarray, held: np.ndarray, whiten: bool):
+    """Dense reference: stack the l−2 dynamics equations, move held states right, lstsq."""
+    G, r = dense_equations(tex, v, x_held, held, whiten)
     x = x_held.copy()
+    free = np.flatnonzero(~held)
     if len(free):
-        sol = np.linalg.lstsq(G, r, rcond=None)[0]
-        x[free] = sol.reshape(-1, k)
+        x[free] = np.linalg.lstsq(G, r, rcond=None)[0].reshape(-1, x.shape[1])
+    return x
+
+
+def dense_state_sample(tex: Texton, xi: np.ndarray, x_held: np.ndarray, held: np.ndarray):
+    """Dense reference of the state-space sample: ``x̄ + L⁻ᵀ ξ_free`` with ``L Lᵀ = GᵀG``.
+
+    ``x̄`` is the noise-free least-squares solution and ``L`` numpy's dense Cholesky factor of
+    the whitened normal matrix in the free states (frame order), ``ξ`` ``(≥ l, k)``.
+    """
+    length, k = x_held.shape
+    G, _ = dense_equations(tex, np.zeros((length - 2, k)), x_held, held, whiten=True)
+    x = dense_lstsq(tex, np.zeros((length - 2, k)), x_held, held, whiten=True)
+    free = np.flatnonzero(~held)
+    if len(free):
+        L = np.linalg.cholesky(G.T @ G)
+        x[free] += np.linalg.solve(L.T, xi[free].reshape(-1)).reshape(-1, k)
     return x
 
 
@@ -102,10 +126,13 @@ def test_matches_dense_lstsq_and_constraints_exact(weighting, length, k, n_edit,
         )
         assert out.shape == (length, 7)
         if key is None:
-            v = np.zeros((length - 2, k))
-        else:
+            ref = dense_lstsq(tex, np.zeros((length - 2, k)), x_held, held, weighting == "whitened")
+        elif weighting == "whitened":  # sampled in state space: x̄ + L⁻ᵀ ξ
+            xi = np.asarray(jax.random.normal(key, (2 * ((length + 1) // 2), k), jnp.float64))
+            ref = dense_state_sample(tex, xi, x_held, held)
+        else:  # perturb-and-MAP with the equation noise v
             v = np.asarray(jax.random.normal(key, (length - 2, k), jnp.float64))
-        ref = dense_lstsq(tex, v, x_held, held, whiten=weighting == "whitened")
+            ref = dense_lstsq(tex, v, x_held, held, whiten=False)
         x = (out - t["mu"]) @ t["C"]
         assert np.linalg.norm(x - ref) <= 1e-9 * np.linalg.norm(ref)
         # constraints hold exactly: first two, last two and every fixed frame

@@ -38,7 +38,7 @@ from jax import lax
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from mtex_jax._linalg import _pair_blocks, _tridiag_solve_rows
+from mtex_jax._linalg import _pair_blocks, _tridiag_sample_rows, _tridiag_solve_rows
 from mtex_jax._texton import Texton
 
 __all__ = ["synthesize_texton"]
@@ -83,13 +83,23 @@ def synthesize_texton(
       ``end=None`` the frames after the last held one follow the dynamics with the same
       noise, i.e. noise-driven continuation.
 
+    How the key is used. Noise-driven, ``weighting="paper"``, and whitened without ``end``:
+    ``v = jax.random.normal(key, (l−2, k))`` enters the equations above (perturb-and-MAP).
+    Whitened with ``end`` (the usual constrained case): the same conditional law is sampled
+    in state space, ``x = x̄ + L⁻ᵀ ξ`` with ``ξ = jax.random.normal(key, (2⌈l/2⌉, k))``,
+    ``x̄`` the conditional mean and ``L Lᵀ`` the banded Cholesky factorisation of the normal
+    matrix ``JᵀJ`` of the whitened equations in the free states. Both are exact samples of
+    ``N(x̄, (JᵀJ)⁻¹)`` (``L⁻¹Jᵀv`` is itself standard normal); the state-space form needs no
+    noise right-hand side and no forward substitution of it, and under ``vmap`` over keys
+    only the backward substitution is batched. Rows of ``ξ`` at held frames are unused.
+
     ``length`` is static; the mask and poses are arrays, so different edits do not recompile.
     Any ``length ≥ 4`` (``≥ 2`` without ``end``) works: the same texton extrapolates (MT Fig. 10).
     ``vmap`` over ``key`` (or over the poses) works.
 
     Args:
         texton: a single :class:`~mtex_jax._texton.Texton` (``D``, ``k``).
-        key: JAX PRNG key for ``v_j ~ N(0, I_k)``, ``j = 2 … l−1``; ``None`` for ``v = 0``.
+        key: JAX PRNG key (see above); ``None`` for zero noise (the conditional mean).
         length: number of frames ``l``.
         start: ``(2, D)`` first two frames.
         end: ``(2, D)`` last two frames, or ``None``.
@@ -204,7 +214,8 @@ class _Equations(eqx.Module):
 
 def _equations(
     tex: Texton,
-    v: Array,
+    length: int,
+    v: Array | None,
     start: Array,
     end: Array | None,
     fixed: tuple[Array, Array] | None,
@@ -212,11 +223,10 @@ def _equations(
 ) -> _Equations:
     """Held frames, Gram matrix ``K = [P0, P1, P2]ᵀ[P0, P1, P2]`` and right-hand side.
 
-    See :func:`_normal_system` for the equations.
+    See :func:`_normal_system` for the equations; ``v=None`` leaves the noise out.
     """
     dt = tex.mu.dtype
     k = tex.C.shape[-1]
-    length = v.shape[0] + 2
     eye = jnp.eye(k, dtype=dt)
     proj = lambda y: (y.astype(dt) - tex.mu) @ tex.C
     idx = np.arange(length)
@@ -238,7 +248,7 @@ def _equations(
     # residual of the equations at the held states, u_j = W d − G_j x̂ (+ noise, below)
     X3 = jnp.concatenate([x_held[2:], x_held[1:-1], x_held[:-2]], axis=1)  # (l−2, 3k)
     U0 = ((W @ tex.d)[None, :] - X3 @ P.T) @ P
-    U = v.astype(dt) @ Q + U0  # (l−2, 3k): row j−2 = [P0ᵀu_j, P1ᵀu_j, P2ᵀu_j]
+    U = U0 if v is None else v.astype(dt) @ Q + U0  # (l−2, 3k): [P0ᵀu_j, P1ᵀu_j, P2ᵀu_j]
     h = (
         jnp.pad(U[:, :k], ((2, 0), (0, 0)))
         + jnp.pad(U[:, k : 2 * k], ((1, 1), (0, 0)))
@@ -305,36 +315,27 @@ def _normal_system(
     Returns:
         The masked system.
     """
-    eqs = _equations(tex, v, start, end, fixed, weighting)
+    eqs = _equations(tex, v.shape[0] + 2, v, start, end, fixed, weighting)
     diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, eqs.held.shape[0])
     return NormalSystem(
         diag=diag, off1=off1, off2=off2, rhs=eqs.rhs, held=eqs.held, x_held=eqs.x_held
     )
 
 
-def _constrained(
-    tex: Texton,
-    v: Array,
-    start: Array,
-    end: Array | None,
-    fixed: tuple[Array, Array] | None,
-    weighting: str,
-) -> Array:
-    """Constrained synthesis core: masked normal equations, banded solve, ``μ + C x``.
+def _solve_constrained(tex: Texton, eqs: _Equations, xi: Array | None) -> Array:
+    """Banded solve of the masked normal equations and ``μ + C x`` (see :func:`_constrained`).
 
-    ``v`` ``(l−2, k)``; returns ``(l, D)``. The pair blocks of the block-tridiagonal form
-    (:mod:`mtex_jax._linalg`) are built directly from the Gram matrix and the held mask (one
-    pass each, symmetric by construction); an odd length is padded with one held frame. Under
-    ``vmap`` over ``v`` alone (many samples of one texton) the factorisation is shared and the
-    samples become the rows of GEMMs. The output is one GEMM ``[x, 1] [Cᵀ; μ]``.
+    With ``xi`` (``(2⌈l/2⌉, k)``) the result is ``x̄ + L⁻ᵀ ξ`` (:func:`_constrained_sample`).
     """
-    eqs = _equations(tex, v, start, end, fixed, weighting)
     length, k = eqs.rhs.shape
     nb = (length + 1) // 2
     diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, 2 * nb)
     pdiag, psub = _pair_blocks(diag, off1, off2)
     r = jnp.pad(eqs.rhs, ((0, 2 * nb - length), (0, 0))).reshape(nb, 1, 2 * k)
-    x, ok, _ = _tridiag_solve_rows(pdiag, psub, r)
+    if xi is None:
+        x, ok, _ = _tridiag_solve_rows(pdiag, psub, r)
+    else:
+        x, ok, _ = _tridiag_sample_rows(pdiag, psub, r, xi.astype(r.dtype).reshape(nb, 1, 2 * k))
     x = jnp.where(eqs.held[:, None], eqs.x_held, x.reshape(2 * nb, k)[:length])
     proj = jnp.concatenate([tex.C.T, tex.mu[None, :]], axis=0)  # (k+1, D)
     proj = eqx.error_if(
@@ -346,6 +347,52 @@ def _constrained(
     return x1 @ proj
 
 
+def _constrained(
+    tex: Texton,
+    v: Array,
+    start: Array,
+    end: Array | None,
+    fixed: tuple[Array, Array] | None,
+    weighting: str,
+) -> Array:
+    """Constrained synthesis by perturb-and-MAP: masked normal equations with the equation
+    noise ``v``, banded solve, ``μ + C x``.
+
+    ``v`` ``(l−2, k)``; returns ``(l, D)``. The pair blocks of the block-tridiagonal form
+    (:mod:`mtex_jax._linalg`) are built directly from the Gram matrix and the held mask (one
+    pass each, symmetric by construction); an odd length is padded with one held frame. Under
+    ``vmap`` over ``v`` alone (many samples of one texton) the factorisation is shared and the
+    samples become the rows of GEMMs. The output is one GEMM ``[x, 1] [Cᵀ; μ]``.
+    """
+    eqs = _equations(tex, v.shape[0] + 2, v, start, end, fixed, weighting)
+    return _solve_constrained(tex, eqs, None)
+
+
+def _constrained_sample(
+    tex: Texton,
+    xi: Array,
+    length: int,
+    start: Array,
+    end: Array | None,
+    fixed: tuple[Array, Array] | None,
+) -> Array:
+    """Exact conditional sample (whitened weighting) drawn in state space.
+
+    With ``J`` the whitened equations in the free states, ``x̄`` the conditional mean (the
+    noise-free least-squares solution) and ``L Lᵀ = JᵀJ`` the banded Cholesky factor of the
+    masked normal matrix, ``x = x̄ + L⁻ᵀ ξ`` with ``ξ ~ N(0, I)`` ``(2⌈l/2⌉, k)`` has the law
+    ``N(x̄, (JᵀJ)⁻¹)`` of the LDS conditioned on the held states — the law of the
+    perturb-and-MAP sample ``x̄ + (JᵀJ)⁻¹Jᵀv`` (:func:`_constrained`), since ``L⁻¹Jᵀv`` is itself
+    ``N(0, I)``. It skips the noise's right-hand side and its forward substitution, and under
+    ``vmap`` over ``ξ`` the mean's forward pass is shared: only the backward pass is batched.
+    Rows of ``ξ`` at held (and padding) frames are ignored.
+    """
+    if xi.shape[0] != 2 * ((length + 1) // 2):
+        raise ValueError(f"xi must have {2 * ((length + 1) // 2)} rows, got {xi.shape[0]}")
+    eqs = _equations(tex, length, None, start, end, fixed, "whitened")
+    return _solve_constrained(tex, eqs, xi)
+
+
 def _constrained_key(
     tex: Texton,
     key: Array | None,
@@ -355,6 +402,10 @@ def _constrained_key(
     fixed: tuple[Array, Array] | None,
     weighting: str,
 ) -> Array:
+    if key is not None and weighting == "whitened" and end is not None:
+        nb = (length + 1) // 2
+        xi = jax.random.normal(key, (2 * nb, tex.C.shape[-1]), tex.mu.dtype)
+        return _constrained_sample(tex, xi, length, start, end, fixed)
     return _constrained(tex, _draw_noise(tex, key, length), start, end, fixed, weighting)
 
 
