@@ -328,6 +328,27 @@ def test_sample_rows_vmap_shares_factorisation_and_matches():
         np.testing.assert_allclose(flat(xb[i : i + 1]), refb, rtol=1e-10, atol=1e-12)
 
 
+def test_sample_rows_dtype_follows_matrix():
+    """float32 system with float64 noise: float32 out on the fused, plain and batched paths."""
+    rng = np.random.default_rng(23)
+    n, b = 4, 3
+    A, D, S = random_tridiag(rng, n, b, ridge=1.0)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)
+    for m in (1, 400):  # (b + m)·b ≤ 1000: fused; larger: plain
+        R, Xi = rng.standard_normal((n, m, b)), rng.standard_normal((n, m, b))
+        x, ok, _ = _tridiag_sample_rows(f32(D), f32(S), f32(R), jnp.asarray(Xi))
+        assert x.dtype == jnp.float32 and bool(ok)
+        ref = _dense_sample(
+            A, R.transpose(0, 2, 1).reshape(n * b, m), Xi.transpose(0, 2, 1).reshape(n * b, m)
+        )
+        got = np.asarray(x, np.float64).transpose(0, 2, 1).reshape(n * b, m)
+        np.testing.assert_allclose(got, ref, rtol=1e-3, atol=1e-3)
+    Xi = jnp.asarray(rng.standard_normal((5, n, 1, b)))
+    f = jax.vmap(_tridiag_sample_rows, in_axes=(None, None, None, 0))
+    x, _, _ = f(f32(D), f32(S), f32(rng.standard_normal((n, 1, b))), Xi)
+    assert x.dtype == jnp.float32
+
+
 @pytest.mark.parametrize("batched", [False, True])
 def test_sample_rows_check_grads(batched):
     """Derivatives through the Cholesky factor (D, S), the right-hand side and ξ."""

@@ -291,7 +291,7 @@ def _solve_rows_plain(
     fac = _factor(D, S)
     z = _forward_rows(fac.Linv, fac.M, r)
     if xi is not None:
-        z = z + xi
+        z = z + xi.astype(z.dtype)
     return _backward_rows(fac.Linv, fac.M, z), fac.ok, fac.first_bad
 
 
@@ -378,6 +378,7 @@ def _rows_batched(
         z = _forward_rows(fac.Linv, fac.M, r)
         z = jnp.broadcast_to(z[:, None], (n, axis_size, m, b)).reshape(n, axis_size * m, b)
     if xi is not None:
+        xi = xi.astype(z.dtype)
         z = z + (fold(xi) if xi_b else jnp.tile(xi, (1, axis_size, 1)))
     elif not r_b:  # nothing batched (cannot happen through vmap, kept total)
         z = jnp.tile(z, (1, axis_size, 1))
@@ -448,6 +449,9 @@ def _tridiag_solve_rows(D: Array, S: Array, r: Array) -> tuple[Array, Array, Arr
     Returns:
         ``x`` ``(n, m, b)`` (finite but meaningless if not ``ok``), ``ok``, ``first_bad``
         (first failing pair block, ``-1`` if ``ok``).
+
+    Derivatives (``custom_jvp``): ``dx = A⁻¹(dr − dA x)``; only the lower triangles of ``D``
+    are read, so tangents of ``D`` are assumed symmetric.
     """
     return _solve_rows_vmappable(D, S, r)
 
@@ -483,6 +487,10 @@ def _tridiag_sample_rows(D: Array, S: Array, r: Array, xi: Array) -> tuple[Array
 
     Returns:
         ``x`` ``(n, m, b)``, ``ok``, ``first_bad`` as :func:`_tridiag_solve_rows`.
+
+    Derivatives: as for :func:`_tridiag_solve_rows`, only the lower triangles of ``D`` are
+    read, so tangents of ``D`` are assumed symmetric (as they are when ``D`` is built
+    symmetric, e.g. the pair blocks of constrained synthesis).
     """
     return _sample_rows_vmappable(D, S, r, xi)
 

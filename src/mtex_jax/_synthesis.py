@@ -23,6 +23,11 @@ is block pentadiagonal in frames; fixed frames are eliminated by masks (their ro
 replaced by the identity, their contribution moved to the right-hand side) so that every edit
 has the same static shapes, and the system is solved by :func:`mtex_jax._linalg` in
 ``O(l·k³)``.
+
+With a key and an end constraint the whitened sample is drawn in state space instead,
+``x̄ + L⁻ᵀ ξ`` with ``J = L Lᵀ`` the banded Cholesky factorisation and ``ξ ~ N(0, I)``: the
+same law (covariance ``L⁻ᵀ L⁻¹ = J⁻¹``) without the noise right-hand side ``Gᵀ v`` and its
+forward substitution (see :func:`synthesize_texton`).
 """
 
 from __future__ import annotations
@@ -79,7 +84,8 @@ def synthesize_texton(
       ``fixed[1][t]``) are held; the free states minimise
       ``Σ_{j=2}^{l−1} ‖W(x_j − A1 x_{j−1} − A2 x_{j−2} − d − B v_j)‖²`` with ``W = B⁻¹``
       (``weighting="whitened"``, an exact sample of the LDS conditioned on the held states,
-      or its mean when ``key is None``) or ``W = I`` (``weighting="paper"``, MT Eq. 9). With
+      or its mean when ``key is None``; with ``end`` given the same law is sampled in state
+      space, see below) or ``W = I`` (``weighting="paper"``, MT Eq. 9). With
       ``end=None`` the frames after the last held one follow the dynamics with the same
       noise, i.e. noise-driven continuation.
 
@@ -87,9 +93,9 @@ def synthesize_texton(
     ``v = jax.random.normal(key, (l−2, k))`` enters the equations above (perturb-and-MAP).
     Whitened with ``end`` (the usual constrained case): the same conditional law is sampled
     in state space, ``x = x̄ + L⁻ᵀ ξ`` with ``ξ = jax.random.normal(key, (2⌈l/2⌉, k))``,
-    ``x̄`` the conditional mean and ``L Lᵀ`` the banded Cholesky factorisation of the normal
-    matrix ``JᵀJ`` of the whitened equations in the free states. Both are exact samples of
-    ``N(x̄, (JᵀJ)⁻¹)`` (``L⁻¹Jᵀv`` is itself standard normal); the state-space form needs no
+    ``x̄`` the conditional mean and ``L Lᵀ = J = GᵀG`` the banded Cholesky factorisation of the
+    normal matrix of the whitened equations ``G`` in the free states. Both are exact samples of
+    ``N(x̄, J⁻¹)`` (``L⁻¹Gᵀv`` is itself standard normal); the state-space form needs no
     noise right-hand side and no forward substitution of it, and under ``vmap`` over keys
     only the backward substitution is batched. Rows of ``ξ`` at held frames are unused.
 
@@ -378,11 +384,11 @@ def _constrained_sample(
 ) -> Array:
     """Exact conditional sample (whitened weighting) drawn in state space.
 
-    With ``J`` the whitened equations in the free states, ``x̄`` the conditional mean (the
-    noise-free least-squares solution) and ``L Lᵀ = JᵀJ`` the banded Cholesky factor of the
-    masked normal matrix, ``x = x̄ + L⁻ᵀ ξ`` with ``ξ ~ N(0, I)`` ``(2⌈l/2⌉, k)`` has the law
-    ``N(x̄, (JᵀJ)⁻¹)`` of the LDS conditioned on the held states — the law of the
-    perturb-and-MAP sample ``x̄ + (JᵀJ)⁻¹Jᵀv`` (:func:`_constrained`), since ``L⁻¹Jᵀv`` is itself
+    With ``G`` the whitened equations in the free states, ``x̄`` the conditional mean (the
+    noise-free least-squares solution) and ``L Lᵀ = J = GᵀG`` the banded Cholesky factor of
+    the masked normal matrix, ``x = x̄ + L⁻ᵀ ξ`` with ``ξ ~ N(0, I)`` ``(2⌈l/2⌉, k)`` has the
+    law ``N(x̄, J⁻¹)`` of the LDS conditioned on the held states — the law of the
+    perturb-and-MAP sample ``x̄ + J⁻¹Gᵀv`` (:func:`_constrained`), since ``L⁻¹Gᵀv`` is itself
     ``N(0, I)``. It skips the noise's right-hand side and its forward substitution, and under
     ``vmap`` over ``ξ`` the mean's forward pass is shared: only the backward pass is batched.
     Rows of ``ξ`` at held (and padding) frames are ignored.
