@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 
+import equinox as eqx
 import jax
 import jax.extend
 import jax.numpy as jnp
@@ -13,7 +14,7 @@ from jax.test_util import check_grads
 from scipy import stats
 
 from mtex_jax._synthesis import synthesize_texton
-from mtex_jax._texton import Texton, fit_texton
+from mtex_jax._texton import Texton, fit_texton, spectral_radius
 
 
 def make_texton(seed: int, D: int, k: int) -> Texton:
@@ -198,6 +199,45 @@ def conditional_gaussian(tex: Texton, length: int, x_held: np.ndarray, held: np.
     m = mean[f] + K @ (xc - mean[h])
     P = cov[np.ix_(f, f)] - K @ cov[np.ix_(h, f)]
     return m, P
+
+
+@pytest.mark.parametrize("weighting", ["whitened", "paper"])
+def test_open_end_with_edits_exact_for_unstable_texton(weighting):
+    """end=None with edits: least squares up to the last held frame, the dynamics after it.
+
+    An unstable texton (spectral radius ≈ 1.3) over 120 frames: a least-squares solve over
+    the open tail would be as ill-conditioned as ρ^(2·90) (it gave 18 % relative error on
+    the tail in a trial before the tail was taken out of the least squares).
+    """
+    tex = make_texton(7, D=6, k=3)
+    tex = eqx.tree_at(lambda t: t.A1, tex, tex.A1 * 1.4)
+    assert float(spectral_radius(tex)) > 1.2
+    t = as_np(tex)
+    length, last = 120, 30
+    rng = np.random.default_rng(4)
+    xs, ys, _ = random_states_case(tex, length, rng, 0)
+    mask = np.zeros(length, bool)
+    mask[[6, last]] = True
+    held = mask.copy()
+    held[:2] = True
+    x_held = np.where(held[:, None], xs, 0.0)
+    for key in (None, jax.random.key(8)):
+        out = synthesize_texton(tex, key, length, ys[:2], fixed=(mask, ys), weighting=weighting)
+        x = (np.asarray(out) - t["mu"]) @ t["C"]
+        v = np.zeros((length - 2, 3))
+        if key is not None:
+            v = np.asarray(jax.random.normal(key, (length - 2, 3), jnp.float64))
+        # reference: dense least squares of the equations j = 2 … last, then the recursion
+        ref = np.zeros((length, 3))
+        ref[: last + 1] = dense_lstsq(
+            tex, v[: last - 1], x_held[: last + 1], held[: last + 1], weighting == "whitened"
+        )
+        for j in range(last + 1, length):
+            ref[j] = t["A1"] @ ref[j - 1] + t["A2"] @ ref[j - 2] + t["d"] + t["B"] @ v[j - 2]
+        assert np.abs(ref).max() > 1e6  # the tail really grows
+        rel = np.linalg.norm(x - ref, axis=1) / np.maximum(np.linalg.norm(ref, axis=1), 1.0)
+        assert rel.max() < 1e-9, rel.max()
+        np.testing.assert_allclose(out[held], ys[held], rtol=0, atol=1e-9)
 
 
 def test_statistics_match_exact_conditional():

@@ -87,7 +87,9 @@ def synthesize_texton(
       or its mean when ``key is None``; with ``end`` given the same law is sampled in state
       space, see below) or ``W = I`` (``weighting="paper"``, MT Eq. 9). With
       ``end=None`` the frames after the last held one follow the dynamics with the same
-      noise, i.e. noise-driven continuation.
+      noise, i.e. noise-driven continuation (computed by the recursion: they and their
+      equations are not part of the least squares, which for an unstable texton would be
+      as ill-conditioned as ``ρ^(2·tail)``).
 
     How the key is used. Noise-driven, ``weighting="paper"``, and whitened without ``end``:
     ``v = jax.random.normal(key, (l−2, k))`` enters the equations above (perturb-and-MAP).
@@ -210,12 +212,20 @@ class NormalSystem(eqx.Module):
 
 
 class _Equations(eqx.Module):
-    """The least-squares problem of constrained synthesis before blocking (internal)."""
+    """The least-squares problem of constrained synthesis before blocking (internal).
+
+    ``tail`` (open end only, ``end=None`` with edits): the frames after the last held one.
+    They are left out of the least squares (held at 0, their equations dropped: ``eq_on``
+    marks the equations kept, ``j = 2 … last held``) and continued by the dynamics
+    recursion afterwards (:func:`_continue_tail`).
+    """
 
     held: Bool[Array, " l"]
     x_held: Float[Array, "l k"]
     K: Float[Array, "3k 3k"]
     rhs: Float[Array, "l k"]
+    tail: Bool[Array, " l"] | None = None
+    eq_on: Bool[Array, " l"] | None = None
 
 
 def _equations(
@@ -246,6 +256,16 @@ def _equations(
         held = held | last
         x_end = jnp.concatenate([jnp.zeros((length - 2, k), dt), proj(end)], axis=0)
         x_held = jnp.where(last[:, None], x_end, x_held)
+    tail = eq_on = None
+    if end is None and fixed is not None:
+        # open end: the equations after the last held frame are square in the frames after
+        # it and are met exactly by the dynamics recursion, so they carry no information on
+        # the other frames; solving them by least squares would only make the normal matrix
+        # of an unstable texton as ill-conditioned as ρ^(2·tail). Drop them, hold the tail.
+        last_held = jnp.max(jnp.where(held, idx, 0))
+        tail = jnp.asarray(idx) > last_held
+        eq_on = (jnp.asarray(idx) >= 2) & ~tail
+        held = held | tail
 
     whitened = weighting == "whitened"
     W = jsl.solve_triangular(tex.B, eye, lower=True) if whitened else eye
@@ -255,21 +275,26 @@ def _equations(
     X3 = jnp.concatenate([x_held[2:], x_held[1:-1], x_held[:-2]], axis=1)  # (l−2, 3k)
     U0 = ((W @ tex.d)[None, :] - X3 @ P.T) @ P
     U = U0 if v is None else v.astype(dt) @ Q + U0  # (l−2, 3k): [P0ᵀu_j, P1ᵀu_j, P2ᵀu_j]
+    if eq_on is not None:
+        U = jnp.where(eq_on[2:, None], U, 0.0)
     h = (
         jnp.pad(U[:, :k], ((2, 0), (0, 0)))
         + jnp.pad(U[:, k : 2 * k], ((1, 1), (0, 0)))
         + jnp.pad(U[:, 2 * k :], ((0, 2), (0, 0)))
     )
     rhs = jnp.where(held[:, None], x_held, h)
-    return _Equations(held=held, x_held=x_held, K=P.T @ P, rhs=rhs)
+    return _Equations(held=held, x_held=x_held, K=P.T @ P, rhs=rhs, tail=tail, eq_on=eq_on)
 
 
-def _frame_blocks(K: Array, held: Array, n: int) -> tuple[Array, Array, Array]:
+def _frame_blocks(
+    K: Array, held: Array, n: int, eq_on: Array | None = None
+) -> tuple[Array, Array, Array]:
     """Masked normal-matrix blocks of ``n`` frames: ``(n, k, k)``, ``(n−1, …)``, ``(n−2, …)``.
 
     ``J_ii = Σ_s [eq i+s exists] P_sᵀ P_s``, ``J_{i+1,i} = [eq i+1] P0ᵀ P1 + [eq i+2] P1ᵀ P2``,
-    ``J_{i+2,i} = [eq i+2] P0ᵀ P2`` (equations ``j = 2 … l−1`` exist, ``l = len(held)``);
-    identity rows and columns at held frames. ``n ≥ l`` pads with held frames.
+    ``J_{i+2,i} = [eq i+2] P0ᵀ P2`` (equations ``j = 2 … l−1`` exist, ``l = len(held)``, or
+    those marked by ``eq_on`` ``(l,)``); identity rows and columns at held frames. ``n ≥ l``
+    pads with held frames.
     """
     k = K.shape[0] // 3
     dt = K.dtype
@@ -278,7 +303,9 @@ def _frame_blocks(K: Array, held: Array, n: int) -> tuple[Array, Array, Array]:
         held = jnp.concatenate([held, jnp.ones((n - length,), bool)])
     Kb = lambda a, b: K[a * k : (a + 1) * k, b * k : (b + 1) * k]
     idx = np.arange(n + 2)
-    eq = ((idx >= 2) & (idx < length)).astype(np.float64)  # equation i exists (static)
+    eq: Any = ((idx >= 2) & (idx < length)).astype(np.float64)  # equation i exists (static)
+    if eq_on is not None:
+        eq = jnp.pad(eq_on.astype(dt), (0, n + 2 - length))
     w = lambda m: jnp.asarray(m, dt)[:, None, None]
     diag = w(eq[:n]) * Kb(0, 0) + w(eq[1 : n + 1]) * Kb(1, 1) + w(eq[2 : n + 2]) * Kb(2, 2)
     off1 = w(eq[1:n]) * Kb(0, 1) + w(eq[2 : n + 1]) * Kb(1, 2)  # block (i+1, i)
@@ -322,20 +349,39 @@ def _normal_system(
         The masked system.
     """
     eqs = _equations(tex, v.shape[0] + 2, v, start, end, fixed, weighting)
-    diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, eqs.held.shape[0])
+    diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, eqs.held.shape[0], eqs.eq_on)
     return NormalSystem(
         diag=diag, off1=off1, off2=off2, rhs=eqs.rhs, held=eqs.held, x_held=eqs.x_held
     )
 
 
-def _solve_constrained(tex: Texton, eqs: _Equations, xi: Array | None) -> Array:
+def _continue_tail(tex: Texton, x: Array, v: Array, tail: Array) -> Array:
+    """Frames with ``tail[t]`` follow ``x_t = A1 x_{t−1} + A2 x_{t−2} + d + B v_t``.
+
+    ``x`` ``(l, k)``, ``v`` ``(l−2, k)`` (``v_t`` is row ``t−2``); the other frames are kept.
+    """
+
+    def step(carry: tuple[Array, Array], inp: tuple[Array, Array, Array]) -> Any:
+        xm1, xm2 = carry
+        xj, vj, tj = inp
+        xj = jnp.where(tj, tex.A1 @ xm1 + tex.A2 @ xm2 + tex.d + tex.B @ vj, xj)
+        return (xj, xm1), xj
+
+    _, rest = lax.scan(step, (x[1], x[0]), (x[2:], v.astype(x.dtype), tail[2:]))
+    return jnp.concatenate([x[:2], rest], axis=0)
+
+
+def _solve_constrained(
+    tex: Texton, eqs: _Equations, xi: Array | None, v: Array | None = None
+) -> Array:
     """Banded solve of the masked normal equations and ``μ + C x`` (see :func:`_constrained`).
 
     With ``xi`` (``(2⌈l/2⌉, k)``) the result is ``x̄ + L⁻ᵀ ξ`` (:func:`_constrained_sample`).
+    An open tail (``eqs.tail``) is then continued by the dynamics with the noise ``v``.
     """
     length, k = eqs.rhs.shape
     nb = (length + 1) // 2
-    diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, 2 * nb)
+    diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, 2 * nb, eqs.eq_on)
     pdiag, psub = _pair_blocks(diag, off1, off2)
     r = jnp.pad(eqs.rhs, ((0, 2 * nb - length), (0, 0))).reshape(nb, 1, 2 * k)
     if xi is None:
@@ -343,6 +389,10 @@ def _solve_constrained(tex: Texton, eqs: _Equations, xi: Array | None) -> Array:
     else:
         x, ok, _ = _tridiag_sample_rows(pdiag, psub, r, xi.astype(r.dtype).reshape(nb, 1, 2 * k))
     x = jnp.where(eqs.held[:, None], eqs.x_held, x.reshape(2 * nb, k)[:length])
+    if eqs.tail is not None:
+        x = _continue_tail(
+            tex, x, jnp.zeros((length - 2, k), x.dtype) if v is None else v, eqs.tail
+        )
     proj = jnp.concatenate([tex.C.T, tex.mu[None, :]], axis=0)  # (k+1, D)
     proj = eqx.error_if(
         proj,
@@ -371,7 +421,7 @@ def _constrained(
     samples become the rows of GEMMs. The output is one GEMM ``[x, 1] [Cᵀ; μ]``.
     """
     eqs = _equations(tex, v.shape[0] + 2, v, start, end, fixed, weighting)
-    return _solve_constrained(tex, eqs, None)
+    return _solve_constrained(tex, eqs, None, v)
 
 
 def _constrained_sample(
