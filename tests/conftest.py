@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 from pathlib import Path
 
@@ -14,6 +15,21 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
 CMU_DIR = SHARED / "data" / "cmu-salsa"
 DEEPMIMIC_DIR = SHARED / "data" / "deepmimic"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_code():
+    """Drop JAX's compiled executables after every test module.
+
+    Each XLA:CPU executable keeps a few anonymous memory mappings of JIT code for as long as
+    JAX caches it; the whole suite compiles thousands of functions (hypothesis draws many
+    shapes), and one process would otherwise run into the kernel's limit on mappings
+    (``vm.max_map_count`` = 65530), which XLA reports as an abort or a segfault while
+    compiling.
+    """
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 def _require(path: Path) -> Path:
