@@ -1078,7 +1078,8 @@ def _whitened_coords(tex: Texton, ybar: Array) -> dict[str, Array]:
         ``[(μ − ȳ)ᵀ | 0]``, so that ``P [y_t − ȳ; 1] = [z_t; (y_t − ȳ)·(μ − ȳ)]``;
         ``F (2k, k+1)`` ``= [F1; F2]`` with a zero last column (it multiplies the ``y·μ``
         row); ``e (k,)``; ``s2 (k,)`` ``= s²``; and the scalars ``mcmc = ‖μ − ȳ‖²``,
-        ``dyn_const = k log 2π + log|Q|`` and ``obs_const = (D−k) log 2πσ²``.
+        ``dyn_const = k log 2π + log|Q|`` and ``obs_const = (D−k) log 2πσ²``; ``U``, ``s``
+        (for :func:`_init_coords`).
     """
     D, k = tex.C.shape
     U, s, _ = jnp.linalg.svd(tex.B)
@@ -1101,10 +1102,38 @@ def _whitened_coords(tex: Texton, ybar: Array) -> dict[str, Array]:
         mcmc=mc @ mc,
         dyn_const=k * _LOG_2PI + 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(tex.B)))),
         obs_const=(D - k) * (_LOG_2PI + jnp.log(tex.sigma2)),
+        U=U,
+        s=s,
     )
 
 
-def _frame_terms_impl(textons: Texton, Y: Array, block: int) -> tuple[Array, Array]:
+def _init_coords(tex: Texton, U: Array, s: Array) -> dict[str, Array]:
+    """Constants of the initial-state term in whitened coordinates (one texton).
+
+    With ``S0 = L0 L0ᵀ`` and ``x = U diag(s) z``:
+    ``L0⁻¹([x_b; x_{b+1}] − m0) = E0 z_b + E1 z_{b+1} − L0⁻¹ m0`` with
+    ``E_i = L0⁻¹[:, ik:(i+1)k] U diag(s)``.
+
+    Returns:
+        ``E (4k, k+1)`` ``= [E0; E1]`` with a zero last column, ``init_c (2k,)`` ``= L0⁻¹ m0``
+        and ``init_const = 2k log 2π + log|S0|``.
+    """
+    k = tex.C.shape[-1]
+    dt = tex.mu.dtype
+    L0 = _psd_cholesky(tex.S0, jnp.zeros((), dt))
+    L0inv = jsl.solve_triangular(L0, jnp.eye(2 * k, dtype=dt), lower=True)
+    Us = U * s[None, :]
+    E = jnp.concatenate([L0inv[:, :k] @ Us, L0inv[:, k:] @ Us], axis=0)
+    return dict(
+        E=jnp.concatenate([E, jnp.zeros((4 * k, 1), dt)], axis=1),
+        init_c=L0inv @ tex.m0,
+        init_const=2 * k * _LOG_2PI + 2.0 * jnp.sum(jnp.log(jnp.diagonal(L0))),
+    )
+
+
+def _frame_terms_impl(
+    textons: Texton, Y: Array, block: int, with_init: bool = False
+) -> tuple[Array, ...]:
     """Time-blocked per-frame terms of a stack of textons, ``(N_t, T)`` each (see frame_terms).
 
     Block ``i`` is the window of frames ``w_i … w_i + W − 1`` (``W = min(block + 2, T)``,
@@ -1112,6 +1141,10 @@ def _frame_terms_impl(textons: Texton, Y: Array, block: int) -> tuple[Array, Arr
     ``obs`` on the whole window and ``dyn`` on its last ``W − 2`` frames (the first two are the
     lags). The windows cover every frame; overlapping frames are written twice with the same
     values. Memory besides the outputs: ``O(N_t · k · W)`` per block.
+
+    ``with_init``: also the initial-state terms ``init (N_t, T)`` of :func:`init_terms`
+    (``init[:, b]`` on the window's first ``W − 1`` frames, ``−inf`` at the last frame), from
+    the same projections: ``[E0; E1]`` is stacked under ``[F1; F2]`` in the per-texton GEMM.
     """
     Y = _error_if_nonfinite(Y, "Y")
     dtype = _float_dtype(Y, textons.mu)
@@ -1124,6 +1157,11 @@ def _frame_terms_impl(textons: Texton, Y: Array, block: int) -> tuple[Array, Arr
     # rows i(k+1) … i(k+1)+k of P are texton i's projection onto [z_t; (y_t − ȳ)·(μ_i − ȳ)]
     P = cw["P"].reshape(n * (k + 1), D + 1)
     F, e, s2 = cw["F"], cw["e"], cw["s2"]
+    if with_init:  # [F1; F2; E0; E1]: one small GEMM per texton for both
+        # per texton (lax.map): the Cholesky factors of S0 are not one batched LAPACK call
+        ic = lax.map(lambda a: _init_coords(*a), (textons, cw["U"], cw["s"]))
+        F = jnp.concatenate([F, ic["E"]], axis=1)
+        init_c, init_const = ic["init_c"], ic["init_const"][:, None]
     dyn_const = cw["dyn_const"][:, None]
     obs_const = cw["obs_const"][:, None]
     mcmc = cw["mcmc"][:, None]
@@ -1133,7 +1171,7 @@ def _frame_terms_impl(textons: Texton, Y: Array, block: int) -> tuple[Array, Arr
     n_blocks = -(-max(T - 2, 1) // step)
     ones = jnp.ones((W, 1), dtype)
 
-    def window_terms(w0: Array) -> tuple[Array | None, Array]:
+    def window_terms(w0: Array) -> tuple[Array | None, Array, Array | None]:
         Yw = lax.dynamic_slice_in_dim(Y, w0, W, axis=0) - ybar  # (W, D) centred frames
         # all textons at once: (N_t(k+1), D+1) × (W, D+1)ᵀ
         Z = lax.dot_general(P, jnp.concatenate([Yw, ones], axis=1), (((1,), (1,)), ((), ())))
@@ -1145,25 +1183,40 @@ def _frame_terms_impl(textons: Texton, Y: Array, block: int) -> tuple[Array, Arr
             x2 = x2 + s2[:, j, None] * Z[:, j] * Z[:, j]
         r2 = jnp.maximum(jnp.sum(Yw * Yw, axis=1) - 2.0 * Z[:, k] + mcmc - x2, 0.0)
         obs = -0.5 * (obs_const + r2 / sigma2) if D > k else jnp.zeros((n, W), dtype)
-        if W < 3:
-            return None, obs
+        if W < 2:
+            return None, obs, None
         FZ = jnp.einsum("njm,nmt->njt", F, Z)  # [F1; F2] z_t: one small GEMM per texton
+        init = None
+        if with_init:  # ‖E0 z_b + E1 z_{b+1} − L0⁻¹m0‖², b = w0 … w0 + W − 2
+            u2: Array | float = 0.0
+            for j in range(2 * k):
+                u = FZ[:, 2 * k + j, :-1] + FZ[:, 4 * k + j, 1:] - init_c[:, j, None]
+                u2 = u2 + u * u
+            init = -0.5 * (init_const + jnp.asarray(u2))
+        if W < 3:
+            return None, obs, init
         w2: Array | float = 0.0
         for j in range(k):
             w = Z[:, j, 2:] + FZ[:, j, 1:-1] + FZ[:, k + j, :-2] - e[:, j, None]
             w2 = w2 + w * w
-        return -0.5 * (dyn_const + w2), obs
+        return -0.5 * (dyn_const + w2), obs, init
 
-    def body(i: Array, carry: tuple[Array, Array]) -> tuple[Array, Array]:
-        dyn, obs = carry
+    def body(i: Array, carry: tuple[Array, ...]) -> tuple[Array, ...]:
+        dyn, obs, *init = carry
         w0 = jnp.minimum(i * step, T - W)
-        dyn_w, obs_w = window_terms(w0)
+        dyn_w, obs_w, init_w = window_terms(w0)
         if dyn_w is not None:
             dyn = lax.dynamic_update_slice_in_dim(dyn, dyn_w, w0 + 2, axis=1)
-        return dyn, lax.dynamic_update_slice_in_dim(obs, obs_w, w0, axis=1)
+        obs = lax.dynamic_update_slice_in_dim(obs, obs_w, w0, axis=1)
+        if init_w is not None:
+            init = [lax.dynamic_update_slice_in_dim(init[0], init_w, w0, axis=1)]
+        return dyn, obs, *init
 
     zeros = jnp.zeros((n, T), dtype)  # dyn[:, :2] stays 0
-    return lax.fori_loop(0, n_blocks, body, (zeros, zeros))
+    carry: tuple[Array, ...] = (zeros, zeros)
+    if with_init:  # init[:, T−1] stays −inf (no segment starts at the last frame)
+        carry = (*carry, jnp.full((n, T), -jnp.inf, dtype))
+    return lax.fori_loop(0, n_blocks, body, carry)
 
 
 _frame_terms_traced = eqx.debug.assert_max_traces(_frame_terms_impl, max_traces=None)
@@ -1385,13 +1438,12 @@ def segment_scores(textons: Texton, Y: ArrayLike, *, chunk_size: int = 1) -> Seg
 
 
 def _segment_scores_impl(textons: Texton, Y: Array, chunk: int) -> SegmentScorer:
-    # dynamics and residual terms by the blocked kernel of frame_terms, the initial-state
-    # terms per texton (lax.map, ``chunk`` textons per step)
-    _, _, init = _all_terms_impl(textons, Y, False, True, chunk)
+    # all three terms by the blocked kernel of frame_terms (``chunk`` is unused: the
+    # per-texton algorithm, init_terms(chunk_size=…), is the independent reference)
+    del chunk
     itemsize = jnp.dtype(_float_dtype(Y, textons.mu)).itemsize
     block = _block_frames(None, textons.n_textons, textons.state_dim, itemsize)
-    dyn, obs = _frame_terms_impl(textons, Y, min(block, Y.shape[0]))
-    assert init is not None
+    dyn, obs, init = _frame_terms_impl(textons, Y, min(block, Y.shape[0]), with_init=True)
     T = dyn.shape[1]
     dyn_off = jnp.mean(dyn[:, 2:], axis=1) if T > 2 else jnp.zeros(dyn.shape[:1], dyn.dtype)
     obs_off = jnp.mean(obs, axis=1)
