@@ -1114,18 +1114,21 @@ def _init_coords(tex: Texton, U: Array, s: Array) -> dict[str, Array]:
     ``L0⁻¹([x_b; x_{b+1}] − m0) = E0 z_b + E1 z_{b+1} − L0⁻¹ m0`` with
     ``E_i = L0⁻¹[:, ik:(i+1)k] U diag(s)``.
 
+    ``L0⁻¹`` is lower triangular, so the first ``k`` rows of ``E1`` are zero: only its last
+    ``k`` rows are kept.
+
     Returns:
-        ``E (4k, k+1)`` ``= [E0; E1]`` with a zero last column, ``init_c (2k,)`` ``= L0⁻¹ m0``
-        and ``init_const = 2k log 2π + log|S0|``.
+        ``E (3k, k+1)`` ``= [E0; E1[k:]]`` with a zero last column, ``init_c (2k,)``
+        ``= L0⁻¹ m0`` and ``init_const = 2k log 2π + log|S0|``.
     """
     k = tex.C.shape[-1]
     dt = tex.mu.dtype
     L0 = _psd_cholesky(tex.S0, jnp.zeros((), dt))
     L0inv = jsl.solve_triangular(L0, jnp.eye(2 * k, dtype=dt), lower=True)
     Us = U * s[None, :]
-    E = jnp.concatenate([L0inv[:, :k] @ Us, L0inv[:, k:] @ Us], axis=0)
+    E = jnp.concatenate([L0inv[:, :k] @ Us, L0inv[k:, k:] @ Us], axis=0)
     return dict(
-        E=jnp.concatenate([E, jnp.zeros((4 * k, 1), dt)], axis=1),
+        E=jnp.concatenate([E, jnp.zeros((3 * k, 1), dt)], axis=1),
         init_c=L0inv @ tex.m0,
         init_const=2 * k * _LOG_2PI + 2.0 * jnp.sum(jnp.log(jnp.diagonal(L0))),
     )
@@ -1144,7 +1147,8 @@ def _frame_terms_impl(
 
     ``with_init``: also the initial-state terms ``init (N_t, T)`` of :func:`init_terms`
     (``init[:, b]`` on the window's first ``W − 1`` frames, ``−inf`` at the last frame), from
-    the same projections: ``[E0; E1]`` is stacked under ``[F1; F2]`` in the per-texton GEMM.
+    the same projections: ``[E0; E1[k:]]`` is stacked under ``[F1; F2]`` in the per-texton
+    GEMM.
     """
     Y = _error_if_nonfinite(Y, "Y")
     dtype = _float_dtype(Y, textons.mu)
@@ -1157,7 +1161,7 @@ def _frame_terms_impl(
     # rows i(k+1) … i(k+1)+k of P are texton i's projection onto [z_t; (y_t − ȳ)·(μ_i − ȳ)]
     P = cw["P"].reshape(n * (k + 1), D + 1)
     F, e, s2 = cw["F"], cw["e"], cw["s2"]
-    if with_init:  # [F1; F2; E0; E1]: one small GEMM per texton for both
+    if with_init:  # [F1; F2; E0; E1[k:]]: one small GEMM per texton for both
         # per texton (lax.map): the Cholesky factors of S0 are not one batched LAPACK call
         ic = lax.map(lambda a: _init_coords(*a), (textons, cw["U"], cw["s"]))
         F = jnp.concatenate([F, ic["E"]], axis=1)
@@ -1189,8 +1193,10 @@ def _frame_terms_impl(
         init = None
         if with_init:  # ‖E0 z_b + E1 z_{b+1} − L0⁻¹m0‖², b = w0 … w0 + W − 2
             u2: Array | float = 0.0
-            for j in range(2 * k):
-                u = FZ[:, 2 * k + j, :-1] + FZ[:, 4 * k + j, 1:] - init_c[:, j, None]
+            for j in range(2 * k):  # rows j < k of E1 are zero
+                u = FZ[:, 2 * k + j, :-1] - init_c[:, j, None]
+                if j >= k:
+                    u = u + FZ[:, 3 * k + j, 1:]
                 u2 = u2 + u * u
             init = -0.5 * (init_const + jnp.asarray(u2))
         if W < 3:
