@@ -597,6 +597,14 @@ def test_prefix_sum_scores_equal_direct_segment_likelihood():
         [float(segment_log_likelihood(textons[ii], Y[bb : ee + 1])) for bb, ee, ii in triples]
     )
     np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-9)
+    # the kernel's time blocks (window edges at other frames, a last window overlapping the
+    # previous one) change nothing; a bad block size is rejected
+    for block_size in (1, 7, 200):
+        other = segment_scores(st, Y, block_size=block_size)
+        np.testing.assert_allclose(np.asarray(other.score(b, e, i)), fast, rtol=1e-12, atol=1e-9)
+        np.testing.assert_array_equal(np.isinf(other.init), np.isinf(scorer.init))
+    with pytest.raises(ValueError, match="block_size"):
+        segment_scores(st, Y, block_size=0)
     # broadcasting over all textons, and invalid segments give -inf
     all_i = np.asarray(scorer.score(b[None, :], e[None, :], np.arange(n_t)[:, None]))
     assert all_i.shape == (n_t, len(triples))

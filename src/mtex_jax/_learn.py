@@ -412,7 +412,7 @@ _fit_all = eqx.filter_jit(_fit_all_impl)
 @eqx.filter_jit
 def _rows_score(tex: Texton, Y: Array, rows: Array, w: Array) -> Array:
     """Σ_r w_r score_{label_r}(start_r, end_r) over segment rows (seq, start, length, label)."""
-    sc = jax.vmap(lambda y: _segment_scores_impl(tex, y, 1))(Y)  # arrays (S, N, T[+1])
+    sc = jax.vmap(lambda y: _segment_scores_impl(tex, y))(Y)  # arrays (S, N, T[+1])
     T = Y.shape[1]
     s, i = rows[:, 0], rows[:, 3]
     b = rows[:, 1]

@@ -267,7 +267,7 @@ def _segment_batch(textons, log_M, log_pi, Y, nf, tmin: int, tmax: int) -> Segme
         textons = jax.tree.map(lambda a: a[None], textons)
 
     def one(y, n):
-        sc = _segment_scores_impl(textons, y, 1)
+        sc = _segment_scores_impl(textons, y)
         return viterbi_segments(sc, log_M, log_pi, n, tmin, tmax)
 
     return jax.vmap(one)(Y, nf)

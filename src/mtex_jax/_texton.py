@@ -1421,17 +1421,20 @@ class SegmentScorer(eqx.Module):
 _score_jit = eqx.filter_jit(SegmentScorer._score)
 
 
-def segment_scores(textons: Texton, Y: ArrayLike, *, chunk_size: int = 1) -> SegmentScorer:
+def segment_scores(
+    textons: Texton, Y: ArrayLike, *, block_size: int | None = None
+) -> SegmentScorer:
     """Per-frame terms of all textons and their prefix sums, for O(1) segment scores.
 
-    Computes ``init``, ``dyn`` and ``obs`` (see :func:`frame_terms`, :func:`init_terms`;
-    ``dyn`` and ``obs`` by the blocked kernel) and returns a :class:`SegmentScorer`.
+    Computes ``init``, ``dyn`` and ``obs`` (see :func:`frame_terms`, :func:`init_terms`), all
+    three by the blocked kernel of :func:`frame_terms` (the initial-state term from the same
+    whitened projections), and returns a :class:`SegmentScorer`.
 
     Args:
         textons: a stack of ``N_t`` textons (a single texton is treated as ``N_t = 1``).
         Y: observations ``(T, D)``, ``T >= 2``.
-        chunk_size: textons vectorised per ``lax.map`` step of the initial-state terms
-            (static).
+        block_size: frames per time block of the kernel (static); ``None`` chooses it from
+            the cache size, as in :func:`frame_terms`.
 
     Returns:
         :class:`SegmentScorer` with arrays ``(N_t, T)`` / ``(N_t, T+1)``.
@@ -1440,15 +1443,19 @@ def segment_scores(textons: Texton, Y: ArrayLike, *, chunk_size: int = 1) -> Seg
     if not textons.is_stacked:
         textons = jax.tree.map(lambda a: a[None], textons)
     Y = _check_obs("Y", Y, textons.obs_dim, min_len=2)
-    return _segment_scores_jit(textons, Y, _check_chunk(chunk_size))
+    dtype = _float_dtype(Y, textons.mu)
+    block = _block_frames(
+        block_size, textons.n_textons, textons.state_dim, jnp.dtype(dtype).itemsize
+    )
+    return _segment_scores_jit(textons, Y, block)
 
 
-def _segment_scores_impl(textons: Texton, Y: Array, chunk: int) -> SegmentScorer:
-    # all three terms by the blocked kernel of frame_terms (``chunk`` is unused: the
-    # per-texton algorithm, init_terms(chunk_size=…), is the independent reference)
-    del chunk
-    itemsize = jnp.dtype(_float_dtype(Y, textons.mu)).itemsize
-    block = _block_frames(None, textons.n_textons, textons.state_dim, itemsize)
+def _segment_scores_impl(textons: Texton, Y: Array, block: int | None = None) -> SegmentScorer:
+    # all three terms by the blocked kernel of frame_terms; init_terms(chunk_size=…), the
+    # per-texton algorithm, is the independent reference
+    if block is None:
+        itemsize = jnp.dtype(_float_dtype(Y, textons.mu)).itemsize
+        block = _block_frames(None, textons.n_textons, textons.state_dim, itemsize)
     dyn, obs, init = _frame_terms_impl(textons, Y, min(block, Y.shape[0]), with_init=True)
     T = dyn.shape[1]
     dyn_off = jnp.mean(dyn[:, 2:], axis=1) if T > 2 else jnp.zeros(dyn.shape[:1], dyn.dtype)
