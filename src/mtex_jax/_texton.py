@@ -1039,13 +1039,16 @@ def _check_chunk(chunk_size: Any) -> int:
 _BLOCK_BYTES = 2 * 2**20
 
 
-def _block_frames(block_size: Any, n: int, k: int, itemsize: int) -> int:
+def _block_frames(block_size: Any, textons: Texton, Y: Array) -> int:
     """Frames per time block of :func:`frame_terms` (``block_size=None``: from the cache size).
 
-    The automatic choice keeps a block's ``(N_t·(k+1), block + 2)`` projections near
-    ``_BLOCK_BYTES`` with ``block + 2`` a multiple of 16 (GEMM-friendly), between 14 and 1022.
+    The automatic choice keeps a block's ``(N_t·(k+1), block + 2)`` projections (in the
+    promoted dtype of ``Y`` and the stacked ``textons``) near ``_BLOCK_BYTES`` with
+    ``block + 2`` a multiple of 16 (GEMM-friendly), between 14 and 1022.
     """
     if block_size is None:
+        itemsize = jnp.dtype(_float_dtype(Y, textons.mu)).itemsize
+        n, k = textons.n_textons, textons.state_dim
         cols = _BLOCK_BYTES // max(n * (k + 1) * itemsize, 1)
         return min(max(16 * (cols // 16), 16), 1024) - 2
     if isinstance(block_size, bool) or not isinstance(block_size, int | np.integer):
@@ -1294,10 +1297,7 @@ def frame_terms(
     single = not textons.is_stacked
     if single:
         textons = jax.tree.map(lambda a: a[None], textons)
-    dtype = _float_dtype(Y, textons.mu)
-    block = _block_frames(
-        block_size, textons.n_textons, textons.state_dim, jnp.dtype(dtype).itemsize
-    )
+    block = _block_frames(block_size, textons, Y)
     dyn, obs = _frame_terms_jit(textons, Y, min(block, Y.shape[0]))
     if single:
         return dyn[0], obs[0]
@@ -1443,10 +1443,7 @@ def segment_scores(
     if not textons.is_stacked:
         textons = jax.tree.map(lambda a: a[None], textons)
     Y = _check_obs("Y", Y, textons.obs_dim, min_len=2)
-    dtype = _float_dtype(Y, textons.mu)
-    block = _block_frames(
-        block_size, textons.n_textons, textons.state_dim, jnp.dtype(dtype).itemsize
-    )
+    block = _block_frames(block_size, textons, Y)
     return _segment_scores_jit(textons, Y, block)
 
 
@@ -1454,8 +1451,7 @@ def _segment_scores_impl(textons: Texton, Y: Array, block: int | None = None) ->
     # all three terms by the blocked kernel of frame_terms; init_terms(chunk_size=…), the
     # per-texton algorithm, is the independent reference
     if block is None:
-        itemsize = jnp.dtype(_float_dtype(Y, textons.mu)).itemsize
-        block = _block_frames(None, textons.n_textons, textons.state_dim, itemsize)
+        block = _block_frames(None, textons, Y)
     dyn, obs, init = _frame_terms_impl(textons, Y, min(block, Y.shape[0]), with_init=True)
     T = dyn.shape[1]
     dyn_off = jnp.mean(dyn[:, 2:], axis=1) if T > 2 else jnp.zeros(dyn.shape[:1], dyn.dtype)
