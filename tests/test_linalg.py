@@ -20,7 +20,6 @@ from mtex_jax._linalg import (
     _solve_rows_plain,
     _solve_rows_unbatched,
     _substitute_rows,
-    _tridiag_sample_rows,
     _tridiag_solve_rows,
     block_banded_matvec,
     block_banded_solve,
@@ -276,104 +275,6 @@ def test_check_grads_every_path(path):
     check_grads(g, (sym(D), S, R), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
 
 
-def _dense_sample(A: np.ndarray, r: np.ndarray, xi: np.ndarray) -> np.ndarray:
-    """``A⁻¹ r + L⁻ᵀ ξ`` with numpy's dense Cholesky ``A = L Lᵀ`` (columns are samples)."""
-    return np.linalg.solve(A, r) + np.linalg.solve(np.linalg.cholesky(A).T, xi)
-
-
-@pytest.mark.parametrize("n", [1, 2, 5])
-@pytest.mark.parametrize(("b", "m"), [(4, 1), (6, 2), (6, 200)])
-def test_sample_rows_matches_dense_cholesky(n, b, m):
-    """``x = A⁻¹ r + L⁻ᵀ ξ``: fused (small) and factor-once (large m) paths, unbatched."""
-    rng = np.random.default_rng(300 + 10 * n + b + m)
-    A, D, S = random_tridiag(rng, n, b)
-    R = rng.standard_normal((n * b, m))
-    Xi = rng.standard_normal((n * b, m))
-    x, ok, bad = jax.jit(_tridiag_sample_rows)(D, S, rows_of(R, n, b), rows_of(Xi, n, b))
-    assert bool(ok) and int(bad) == -1
-    x = np.swapaxes(np.asarray(x), 1, 2).reshape(n * b, m)
-    ref = _dense_sample(A, R, Xi)
-    assert np.linalg.norm(x - ref) <= 1e-9 * np.linalg.norm(ref)
-
-
-def test_sample_rows_vmap_shares_factorisation_and_matches():
-    """vmap over ξ (one r), over r and ξ, and over the matrix: each equals the dense formula;
-    with the matrix unbatched no LAPACK call sees a batch."""
-    rng = np.random.default_rng(17)
-    n, b, N = 5, 4, 23
-    A, D, S = random_tridiag(rng, n, b)
-    r = rng.standard_normal((n, 1, b))
-    Xi = rng.standard_normal((N, n, 1, b))
-    R = rng.standard_normal((N, n, 1, b))
-    flat = lambda a: np.asarray(a).reshape(a.shape[0], n * b)
-    f_xi = jax.vmap(_tridiag_sample_rows, in_axes=(None, None, None, 0))
-    x, ok, _ = jax.jit(f_xi)(D, S, r, Xi)
-    assert bool(np.all(np.asarray(ok)))
-    ref = _dense_sample(A, np.repeat(r.reshape(n * b, 1), N, 1), flat(Xi).T).T
-    np.testing.assert_allclose(flat(x), ref, rtol=1e-10, atol=1e-12)
-    shapes = _lapack_operand_shapes(jax.make_jaxpr(f_xi)(D, S, r, Xi).jaxpr)
-    assert shapes and all(len(s) == 2 for _, s in shapes), shapes
-    f_both = jax.vmap(_tridiag_sample_rows, in_axes=(None, None, 0, 0))
-    x, _, _ = jax.jit(f_both)(D, S, R, Xi)
-    np.testing.assert_allclose(flat(x), _dense_sample(A, flat(R).T, flat(Xi).T).T, rtol=1e-10)
-    f_r = jax.vmap(_tridiag_sample_rows, in_axes=(None, None, 0, None))
-    x, _, _ = jax.jit(f_r)(D, S, R, Xi[0])
-    ref = _dense_sample(A, flat(R).T, np.repeat(flat(Xi[:1]).T, N, 1)).T
-    np.testing.assert_allclose(flat(x), ref, rtol=1e-10)
-    Ab, Db, Sb = zip(*(random_tridiag(rng, n, b) for _ in range(3)), strict=True)
-    xb, okb, _ = jax.jit(jax.vmap(_tridiag_sample_rows))(np.stack(Db), np.stack(Sb), R[:3], Xi[:3])
-    assert okb.shape == (3,) and bool(np.all(np.asarray(okb)))
-    for i in range(3):
-        refb = _dense_sample(Ab[i], flat(R[i : i + 1]).T, flat(Xi[i : i + 1]).T).T
-        np.testing.assert_allclose(flat(xb[i : i + 1]), refb, rtol=1e-10, atol=1e-12)
-
-
-def test_sample_rows_dtype_follows_matrix():
-    """float32 system with float64 noise: float32 out on the fused, plain and batched paths."""
-    rng = np.random.default_rng(23)
-    n, b = 4, 3
-    A, D, S = random_tridiag(rng, n, b, ridge=1.0)
-    f32 = lambda a: jnp.asarray(a, jnp.float32)
-    for m in (1, 400):  # (b + m)·b ≤ 1000: fused; larger: plain
-        R, Xi = rng.standard_normal((n, m, b)), rng.standard_normal((n, m, b))
-        x, ok, _ = _tridiag_sample_rows(f32(D), f32(S), f32(R), jnp.asarray(Xi))
-        assert x.dtype == jnp.float32 and bool(ok)
-        ref = _dense_sample(
-            A, R.transpose(0, 2, 1).reshape(n * b, m), Xi.transpose(0, 2, 1).reshape(n * b, m)
-        )
-        got = np.asarray(x, np.float64).transpose(0, 2, 1).reshape(n * b, m)
-        np.testing.assert_allclose(got, ref, rtol=1e-3, atol=1e-3)
-    Xi = jnp.asarray(rng.standard_normal((5, n, 1, b)))
-    f = jax.vmap(_tridiag_sample_rows, in_axes=(None, None, None, 0))
-    x, _, _ = f(f32(D), f32(S), f32(rng.standard_normal((n, 1, b))), Xi)
-    assert x.dtype == jnp.float32
-
-
-@pytest.mark.parametrize("batched", [False, True])
-def test_sample_rows_check_grads(batched):
-    """Derivatives through the Cholesky factor (D, S), the right-hand side and ξ."""
-    rng = np.random.default_rng(19)
-    n, b = 4, 3
-    _, D, S = random_tridiag(rng, n, b, ridge=1.0)
-    sym = lambda d: 0.5 * (d + jnp.swapaxes(d, -1, -2))
-    if batched:
-        R, Xi = rng.standard_normal((n, 1, b)), rng.standard_normal((3, n, 1, b))
-        f = lambda d, s, r, xi: jax.vmap(_tridiag_sample_rows, in_axes=(None, None, None, 0))(
-            sym(d), s, r, xi
-        )[0]
-    else:
-        R, Xi = rng.standard_normal((n, 2, b)), rng.standard_normal((n, 2, b))
-        f = lambda d, s, r, xi: _tridiag_sample_rows(sym(d), s, r, xi)[0]
-    check_grads(
-        jax.jit(f),
-        (np.asarray(sym(D)), S, R, Xi),
-        order=1,
-        modes=("fwd", "rev"),
-        atol=1e-6,
-        rtol=1e-6,
-    )
-
-
 @pytest.mark.parametrize("path", ["fused", "many-rhs", "vmap-rhs"])
 def test_non_pd_status_every_path(path):
     rng = np.random.default_rng(12)
@@ -388,15 +289,6 @@ def test_non_pd_status_every_path(path):
         ok, bad = ok[0], bad[0]
     else:
         x, ok, bad = jax.jit(_tridiag_solve_rows)(D, S, R)
-    assert not bool(ok) and int(bad) == 3
-    assert np.isfinite(np.asarray(x)).all()
-    # the sampler reports the same status
-    if path == "vmap-rhs":
-        f = jax.vmap(_tridiag_sample_rows, in_axes=(None, None, None, 0))
-        x, ok, bad = f(D, S, R, R[None])
-        ok, bad = ok[0], bad[0]
-    else:
-        x, ok, bad = jax.jit(_tridiag_sample_rows)(D, S, R, R)
     assert not bool(ok) and int(bad) == 3
     assert np.isfinite(np.asarray(x)).all()
 
@@ -423,7 +315,7 @@ def test_in_place_loops_copy_no_buffer():
     hlo = jax.jit(_solve_rows_fused).lower(D, S, R).compile().as_text()
     assert hlo is not None and f"f64[{n},{2 * b + m},{b}]" in hlo  # the buffer exists
     assert not re.search(rf"f64\[{n},{2 * b + m},{b}\]\{{[0-9,]+\}} copy\(", hlo)
-    fac = _factor(D, S)
+    fac = _factor(jnp.asarray(D), jnp.asarray(S))
     Rm = rng.standard_normal((n, 50, b))
     hlo = jax.jit(_substitute_rows).lower(fac.Linv, fac.M, Rm).compile().as_text()
     assert hlo is not None and f"f64[{n},50,{b}]" in hlo

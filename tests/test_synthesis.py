@@ -13,7 +13,14 @@ import pytest
 from jax.test_util import check_grads
 from scipy import stats
 
-from mtex_jax._synthesis import synthesize_texton
+from mtex_jax._synthesis import (
+    _bridge,
+    _equations,
+    _sincos_turn,
+    _solve_constrained,
+    _standard_normal,
+    synthesize_texton,
+)
 from mtex_jax._texton import Texton, fit_texton, spectral_radius
 
 
@@ -74,20 +81,9 @@ def dense_lstsq(tex: Texton, v: np.ndarray, x_held: np.ndarray, held: np.ndarray
     return x
 
 
-def dense_state_sample(tex: Texton, xi: np.ndarray, x_held: np.ndarray, held: np.ndarray):
-    """Dense reference of the state-space sample: ``x̄ + L⁻ᵀ ξ_free`` with ``L Lᵀ = GᵀG``.
-
-    ``x̄`` is the noise-free least-squares solution and ``L`` numpy's dense Cholesky factor of
-    the whitened normal matrix in the free states (frame order), ``ξ`` ``(≥ l, k)``.
-    """
-    length, k = x_held.shape
-    G, _ = dense_equations(tex, np.zeros((length - 2, k)), x_held, held, whiten=True)
-    x = dense_lstsq(tex, np.zeros((length - 2, k)), x_held, held, whiten=True)
-    free = np.flatnonzero(~held)
-    if len(free):
-        L = np.linalg.cholesky(G.T @ G)
-        x[free] += np.linalg.solve(L.T, xi[free].reshape(-1)).reshape(-1, k)
-    return x
+def noise(key, length: int, k: int) -> np.ndarray:
+    """The equation noise ``v`` ``(l−2, k)`` that ``synthesize_texton`` draws from ``key``."""
+    return np.asarray(_standard_normal(key, (length - 2, k), jnp.float64))
 
 
 def random_states_case(tex: Texton, length: int, rng: np.random.Generator, n_edit: int):
@@ -109,6 +105,9 @@ def random_states_case(tex: Texton, length: int, rng: np.random.Generator, n_edi
     [
         (4, 2, 0, 0),
         (5, 1, 0, 1),
+        (6, 2, 0, 6),  # both ends held, no edits: the bridge recursion from here on
+        (9, 3, 0, 7),
+        (40, 4, 0, 8),
         (13, 3, 3, 4),
         (31, 4, 5, 5),
     ],
@@ -126,14 +125,9 @@ def test_matches_dense_lstsq_and_constraints_exact(weighting, length, k, n_edit,
             synthesize_texton(tex, key, length, ys[:2], ys[-2:], (mask, ys), weighting=weighting)
         )
         assert out.shape == (length, 7)
-        if key is None:
-            ref = dense_lstsq(tex, np.zeros((length - 2, k)), x_held, held, weighting == "whitened")
-        elif weighting == "whitened":  # sampled in state space: x̄ + L⁻ᵀ ξ
-            xi = np.asarray(jax.random.normal(key, (2 * ((length + 1) // 2), k), jnp.float64))
-            ref = dense_state_sample(tex, xi, x_held, held)
-        else:  # perturb-and-MAP with the equation noise v
-            v = np.asarray(jax.random.normal(key, (length - 2, k), jnp.float64))
-            ref = dense_lstsq(tex, v, x_held, held, whiten=False)
+        # perturb-and-MAP: least squares of the equations with the noise v of the key
+        v = np.zeros((length - 2, k)) if key is None else noise(key, length, k)
+        ref = dense_lstsq(tex, v, x_held, held, weighting == "whitened")
         x = (out - t["mu"]) @ t["C"]
         assert np.linalg.norm(x - ref) <= 1e-9 * np.linalg.norm(ref)
         # constraints hold exactly: first two, last two and every fixed frame
@@ -148,7 +142,7 @@ def test_noise_driven_matches_recursion_and_open_end():
     _, ys, _ = random_states_case(tex, length, rng, 0)
     key = jax.random.key(3)
     out = np.asarray(synthesize_texton(tex, key, length, ys[:2]))
-    v = np.asarray(jax.random.normal(key, (length - 2, 3), jnp.float64))
+    v = noise(key, length, 3)
     x = list((ys[:2] - t["mu"]) @ t["C"])
     for j in range(2, length):
         x.append(t["A1"] @ x[j - 1] + t["A2"] @ x[j - 2] + t["d"] + t["B"] @ v[j - 2])
@@ -226,7 +220,7 @@ def test_open_end_with_edits_exact_for_unstable_texton(weighting):
         x = (np.asarray(out) - t["mu"]) @ t["C"]
         v = np.zeros((length - 2, 3))
         if key is not None:
-            v = np.asarray(jax.random.normal(key, (length - 2, 3), jnp.float64))
+            v = noise(key, length, 3)
         # reference: dense least squares of the equations j = 2 … last, then the recursion
         ref = np.zeros((length, 3))
         ref[: last + 1] = dense_lstsq(
@@ -240,8 +234,12 @@ def test_open_end_with_edits_exact_for_unstable_texton(weighting):
         np.testing.assert_allclose(out[held], ys[held], rtol=0, atol=1e-9)
 
 
-def test_statistics_match_exact_conditional():
+@pytest.mark.parametrize("edit", [False, True])
+def test_statistics_match_exact_conditional(edit):
     """≥ 2,000 constrained samples: mean and covariance of the free states vs the exact law.
+
+    Without edits the samples come from the bridge recursion, with an edited frame from the
+    banded solve (both under ``vmap`` over keys).
 
     Tolerances from the sample size N: with Σ the exact covariance (p free coordinates), the
     whitened sample mean ``√N Σ^{-1/2}(m̂ − m)`` is N(0, I_p) so ``N‖·‖²`` is χ²_p: we require it
@@ -254,7 +252,7 @@ def test_statistics_match_exact_conditional():
     rng = np.random.default_rng(1)
     xs, ys, _ = random_states_case(tex, length, rng, 0)
     mask = np.zeros(length, bool)
-    mask[6] = True  # one edited frame as well
+    mask[6] = edit  # one edited frame as well
     held = mask.copy()
     held[:2] = held[-2:] = True
     x_held = np.where(held[:, None], xs, 0.0)
@@ -326,11 +324,20 @@ def test_fitted_texton_extrapolates_and_is_differentiable():
         np.testing.assert_allclose(out[-2:], Y[50:52], atol=0.05)  # end poses near the subspace
 
 
-def test_differentiable_in_key_poses():
+def test_differentiable_in_key_poses_and_dynamics():
+    """Through the bridge (no edits): poses and the texton's A1, B, with and without noise."""
     small = make_texton(1, D=4, k=2)
+    length = 10
     s0, e0 = jnp.asarray(np.arange(8.0).reshape(2, 4) / 8), jnp.ones((2, 4))
-    f = jax.jit(lambda s, e: synthesize_texton(small, None, 7, s, e))
-    check_grads(f, (s0, e0), order=1, modes=("rev",))
+    for key in (None, jax.random.key(4)):
+        f = jax.jit(lambda s, e, key=key: synthesize_texton(small, key, length, s, e))
+        check_grads(f, (s0, e0), order=1, modes=("fwd", "rev"))
+
+        def g(A1, B, key=key):
+            tex = eqx.tree_at(lambda t: (t.A1, t.B), small, (A1, B))
+            return synthesize_texton(tex, key, length, s0, e0)
+
+        check_grads(jax.jit(g), (small.A1, small.B), order=1, modes=("fwd", "rev"))
 
 
 def test_input_errors():
@@ -348,16 +355,20 @@ def test_input_errors():
         synthesize_texton(tex, None, 8, y2, y2, (np.zeros(7, bool), np.zeros((8, 5))))
 
 
+@pytest.mark.parametrize("edit", [False, True])
 @pytest.mark.parametrize("weighting", ["whitened", "paper"])
-def test_vmap_over_keys_equals_single_calls_and_factorises_once(weighting):
+def test_vmap_over_keys_equals_single_calls_and_factorises_once(weighting, edit):
     """vmap over the noise shares one factorisation (no batched LAPACK call); every sample
-    equals the unbatched synthesis with the same key, and gradients go through both paths."""
+    equals the unbatched synthesis with the same key, and gradients go through both paths.
+
+    Without an edit: the bridge (batched form under vmap, single form per call); with one:
+    the banded solve."""
     tex = make_texton(21, D=6, k=3)
     length = 15
     rng = np.random.default_rng(3)
     _, ys, _ = random_states_case(tex, length, rng, 0)
     mask = np.zeros(length, bool)
-    mask[7] = True
+    mask[7] = edit
     keys = jax.random.split(jax.random.key(5), 4)
 
     def one(key, s):
@@ -380,3 +391,76 @@ def test_vmap_over_keys_equals_single_calls_and_factorises_once(weighting):
     assert shapes and all(len(s) == 2 for s in shapes), shapes
     f = jax.jit(lambda s: jax.vmap(one, in_axes=(0, None))(keys[:2], s))
     check_grads(f, (jnp.asarray(ys[:2]),), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
+
+
+def test_standard_normal_is_standard_normal():
+    """The Box–Muller noise: Kolmogorov–Smirnov against N(0, 1), moments, float32, and the
+    polynomial (cos 2πu, sin 2πu) against numpy, quadrant boundaries included."""
+    z = np.asarray(_standard_normal(jax.random.key(0), (400, 501), jnp.float64)).ravel()
+    assert z.size == 200_400 and np.isfinite(z).all()
+    assert stats.kstest(z, "norm").pvalue > 1e-6
+    n = z.size
+    assert abs(z.mean()) < 5 / np.sqrt(n) and abs(z.var() - 1) < 5 * np.sqrt(2 / n)
+    assert abs(stats.skew(z)) < 5 * np.sqrt(6 / n) and abs(stats.kurtosis(z)) < 5 * np.sqrt(24 / n)
+    # independent halves: the cosine and the sine parts are uncorrelated
+    h = z.size // 2
+    assert abs(np.corrcoef(z[:h], z[h : 2 * h])[0, 1]) < 5 / np.sqrt(h)
+    z32 = _standard_normal(jax.random.key(1), (1000, 3), jnp.float32)
+    assert z32.dtype == jnp.float32 and z32.shape == (1000, 3)
+    u = np.concatenate(
+        [np.random.default_rng(0).uniform(size=100_000), [0.0, 0.25, 0.5, 0.75, 1 - 2**-53]]
+    )
+    c, s_ = (np.asarray(a) for a in _sincos_turn(jnp.asarray(u)))
+    np.testing.assert_allclose(c, np.cos(2 * np.pi * u), rtol=0, atol=2e-15)
+    np.testing.assert_allclose(s_, np.sin(2 * np.pi * u), rtol=0, atol=2e-15)
+
+
+@pytest.mark.parametrize("weighting", ["whitened", "paper"])
+def test_constrained_to_its_own_noise_driven_end_is_the_noise_driven_motion(weighting):
+    """Same key, end poses taken from the noise-driven motion of that key: the least squares
+    has a zero residual there, so the constrained sample is that motion (the control is 0)."""
+    tex = make_texton(12, D=9, k=4)
+    length = 37
+    rng = np.random.default_rng(2)
+    _, ys, _ = random_states_case(tex, length, rng, 0)
+    key = jax.random.key(11)
+    free = np.asarray(synthesize_texton(tex, key, length, ys[:2]))
+    bridged = np.asarray(
+        synthesize_texton(tex, key, length, ys[:2], free[-2:], weighting=weighting)
+    )
+    np.testing.assert_allclose(bridged, free, rtol=0, atol=1e-9 * np.abs(free).max())
+
+
+@pytest.mark.parametrize("rho", [0.95, 1.3])
+def test_bridge_at_paper_scale_equals_banded_solve_and_dense(rho):
+    """k = 15, the bridge against the banded solve of the same equations (length 172) and
+    against dense least squares (length 60). A texton with spectral radius 1.3 amplifies by
+    ~1.3^168 over the segment: the bridge reports itself unusable and the banded solve is
+    used, with the same result."""
+    k, D = 15, 20
+    tex = make_texton(30, D=D, k=k)
+    s = rho / float(spectral_radius(tex))
+    tex = eqx.tree_at(lambda t: (t.A1, t.A2), tex, (tex.A1 * s, tex.A2 * s**2))
+    t = as_np(tex)
+    rng = np.random.default_rng(5)
+    for length in (60, 172):
+        xs, ys, _ = random_states_case(tex, length, rng, 0)
+        key = jax.random.key(length)
+        v = noise(key, length, k)
+        out = np.asarray(synthesize_texton(tex, key, length, ys[:2], ys[-2:]))
+        x = (out - t["mu"]) @ t["C"]
+        w = jnp.asarray(v) @ tex.B.T
+        _, _, usable = _bridge(tex, w, jnp.asarray(xs[:2]), jnp.asarray(xs[-2:]), "whitened")
+        assert bool(usable) == (rho < 1), (rho, length)
+        eqs = _equations(
+            tex, length, w, jnp.asarray(ys[:2]), jnp.asarray(ys[-2:]), None, "whitened"
+        )
+        banded, ok = _solve_constrained(tex, eqs, w)
+        assert bool(ok)
+        banded = np.asarray(banded)
+        assert np.linalg.norm(x - banded) <= 1e-10 * np.linalg.norm(banded)
+        if length == 60:
+            held = np.zeros(length, bool)
+            held[:2] = held[-2:] = True
+            ref = dense_lstsq(tex, v, np.where(held[:, None], xs, 0.0), held, whiten=True)
+            assert np.linalg.norm(x - ref) <= 1e-9 * np.linalg.norm(ref)

@@ -43,10 +43,6 @@ matrix products; what matters is the number of kernel calls per step:
   factorisation is not repeated per batch element and no LAPACK kernel sees a batch.
   Derivatives come from a :func:`jax.custom_jvp` rule, ``dx = A⁻¹(dr − dA x)``, whose tangent
   solve uses the plain path (autodiff-transparent, hence transposable for reverse mode).
-* *Sampling* (``_tridiag_sample_rows``, constrained synthesis with a key): ``x = A⁻¹ r + L⁻ᵀ ξ``
-  is an exact sample of ``N(A⁻¹ r, A⁻¹)`` for standard normal ``ξ``; it is the solve with
-  ``ξ`` added to the forward result before the backward pass. Under ``vmap`` over ``ξ`` alone
-  the factorisation and the forward pass run once and only the backward pass is batched.
 * When the *matrix* is batched by the caller's ``vmap`` (different matrices), each element is
   factorised with the plain path under ``vmap`` (LAPACK then sees a batch, as it would for any
   vmapped factorisation).
@@ -212,30 +208,26 @@ def block_tridiag_cholesky(
     return _factor(_sym(diag), sub)
 
 
-def _forward_rows(Linv: Array, M: Array, r: Array) -> Array:
-    """Forward substitution in row form, ``z_I = (r_I − z_{I−1} M_{I−1}ᵀ) L_I⁻ᵀ``.
+def _substitute_rows(Linv: Array, M: Array, r: Array) -> Array:
+    """Forward and backward substitution with stored inverses; right-hand sides as rows.
 
     ``r`` is ``(n, m, b)`` (row ``j`` of block ``I`` is the ``j``-th right-hand side restricted
-    to block ``I``), so each step is one ``(m, b) × (b, b)`` product, a GEMM over all ``m``
-    right-hand sides (and over a ``vmap`` batch, which is folded into the rows). The loop
-    overwrites its input in place (a loop carry updated with ``dynamic_update_slice``) instead
-    of stacking a new output, so no ``(n, m, b)`` buffer is allocated and zero-filled.
+    to block ``I``), so each step is one ``(m, b) × (b, b)`` product per pass, a GEMM over all
+    ``m`` right-hand sides (and over a ``vmap`` batch, which is folded into the rows).
+    Row form of the substitution: ``z_I = (r_I − z_{I−1} M_{I−1}ᵀ) L_I⁻ᵀ``,
+    ``x_I = (z_I − x_{I+1} M_I) L_I⁻¹``. Both passes overwrite their input in place (a loop
+    carry updated with ``dynamic_update_slice``) instead of stacking a new output, so no
+    ``(n, m, b)`` buffer is allocated and zero-filled per pass.
     """
     n, m, b = r.shape
-    M_prev = jnp.concatenate([jnp.zeros((1, b, b), M.dtype), M], axis=0)
+    zero_blk = jnp.zeros((1, b, b), M.dtype)
+    M_prev = jnp.concatenate([zero_blk, M], axis=0)
+    M_next = jnp.concatenate([M, zero_blk], axis=0)
 
     def fwd(i: Array, carry: tuple[Array, Array]) -> tuple[Array, Array]:
         z_prev, R = carry
         z = (_row(R, i) - z_prev @ _row(M_prev, i).T) @ _row(Linv, i).T
         return z, _put(R, z, i)
-
-    return lax.fori_loop(0, n, fwd, (jnp.zeros((m, b), r.dtype), r))[1]
-
-
-def _backward_rows(Linv: Array, M: Array, z: Array) -> Array:
-    """Backward substitution in row form, ``x_I = (z_I − x_{I+1} M_I) L_I⁻¹`` (in place)."""
-    n, m, b = z.shape
-    M_next = jnp.concatenate([M, jnp.zeros((1, b, b), M.dtype)], axis=0)
 
     def bwd(j: Array, carry: tuple[Array, Array]) -> tuple[Array, Array]:
         i = n - 1 - j
@@ -243,15 +235,10 @@ def _backward_rows(Linv: Array, M: Array, z: Array) -> Array:
         x = (_row(R, i) - x_next @ _row(M_next, i)) @ _row(Linv, i)
         return x, _put(R, x, i)
 
-    return lax.fori_loop(0, n, bwd, (jnp.zeros((m, b), z.dtype), z))[1]
-
-
-def _substitute_rows(Linv: Array, M: Array, r: Array) -> Array:
-    """Forward and backward substitution with stored inverses; right-hand sides as rows.
-
-    ``r`` is ``(n, m, b)``; see :func:`_forward_rows` and :func:`_backward_rows`.
-    """
-    return _backward_rows(Linv, M, _forward_rows(Linv, M, r))
+    zero = jnp.zeros((m, b), r.dtype)
+    _, z = lax.fori_loop(0, n, fwd, (zero, r))
+    _, x = lax.fori_loop(0, n, bwd, (zero, z))
+    return x
 
 
 def block_tridiag_solve(
@@ -278,26 +265,17 @@ def block_tridiag_solve(
 # --------------------------------------------------------------------------------------------
 
 
-def _solve_rows_plain(
-    D: Array, S: Array, r: Array, xi: Array | None = None
-) -> tuple[Array, Array, Array]:
+def _solve_rows_plain(D: Array, S: Array, r: Array) -> tuple[Array, Array, Array]:
     """Factor once (storing ``L_I⁻¹``), then GEMM substitution. Autodiff-transparent.
 
-    With ``xi`` (same shape as ``r``) the result is ``A⁻¹ r + L⁻ᵀ ξ`` (see
-    :func:`_tridiag_sample_rows`): ``ξ`` is added to the forward result before the backward
-    pass. A failed factorisation has its blocks zeroed from the failing one on, so ``x`` stays
+    A failed factorisation has its blocks zeroed from the failing one on, so ``x`` stays
     finite (for finite ``r``) without a pass over it.
     """
     fac = _factor(D, S)
-    z = _forward_rows(fac.Linv, fac.M, r)
-    if xi is not None:
-        z = z + xi.astype(z.dtype)
-    return _backward_rows(fac.Linv, fac.M, z), fac.ok, fac.first_bad
+    return _substitute_rows(fac.Linv, fac.M, r), fac.ok, fac.first_bad
 
 
-def _solve_rows_fused(
-    D: Array, S: Array, r: Array, xi: Array | None = None
-) -> tuple[Array, Array, Array]:
+def _solve_rows_fused(D: Array, S: Array, r: Array) -> tuple[Array, Array, Array]:
     """Factorisation with the forward substitution fused into its triangular solve.
 
     With ``X_{I−1} = [M_{I−1}; z_{I−1}]`` (``(b+m, b)``, rows) carried, step ``I`` is
@@ -312,7 +290,7 @@ def _solve_rows_fused(
     one per-block buffer, over the entries they have just read (``[S_I; 0; 0]`` becomes
     ``[M_I; z_I; L_I]``, then ``z_I`` becomes ``x_I``): no stacked output is allocated and
     zero-filled, and as every write depends on the read it replaces, XLA needs no defensive
-    copy of the buffer. With ``xi`` the backward pass runs on ``z + ξ`` (``A⁻¹ r + L⁻ᵀ ξ``).
+    copy of the buffer.
     """
     n, m, b = r.shape
     dt = D.dtype
@@ -330,8 +308,6 @@ def _solve_rows_fused(
         return X, _put(SXLb, jnp.concatenate([X, L], axis=0), i)
 
     _, SXL = lax.fori_loop(0, n, fwd, (jnp.zeros((b + m, b), dt), SXL))
-    if xi is not None:  # sampling: backward pass on z + ξ (see _tridiag_sample_rows)
-        SXL = SXL.at[:, b : b + m].add(xi.astype(dt))
 
     def bwd(j: Array, carry: tuple[Array, Array]) -> tuple[Array, Array]:
         i = n - 1 - j
@@ -345,44 +321,29 @@ def _solve_rows_fused(
     return jnp.where(ok, SXL[:, b : b + m], 0.0), ok, first_bad
 
 
-def _solve_rows_unbatched(
-    D: Array, S: Array, r: Array, xi: Array | None = None
-) -> tuple[Array, Array, Array]:
+def _solve_rows_unbatched(D: Array, S: Array, r: Array) -> tuple[Array, Array, Array]:
     b, m = D.shape[-1], r.shape[1]
     if (b + m) * b <= _TRSM_MAX_ENTRIES:  # the fused triangular solve stays one small call
-        return _solve_rows_fused(D, S, r, xi)
-    return _solve_rows_plain(D, S, r, xi)
+        return _solve_rows_fused(D, S, r)
+    return _solve_rows_plain(D, S, r)
 
 
 def _rows_batched(
-    axis_size: int,
-    D: Array,
-    S: Array,
-    r: Array,
-    r_b: bool,
-    xi: Array | None,
-    xi_b: bool,
+    axis_size: int, D: Array, S: Array, r: Array, r_b: bool
 ) -> tuple[Array, Array, Array]:
-    """One matrix, batched right-hand sides and/or noise: factor once, batch in GEMM rows.
+    """One matrix, batched right-hand sides: factor once, the batch folded into GEMM rows.
 
     Returns ``x`` with the batch axis first; ``ok``, ``first_bad`` unbatched.
     """
     n, b = D.shape[0], D.shape[-1]
-    fold = lambda a: jnp.moveaxis(a, 0, 1).reshape(n, axis_size * a.shape[2], b)
     fac = _factor(D, S)
-    if r_b or xi is None:
-        m = r.shape[2] if r_b else r.shape[1]
-        z = _forward_rows(fac.Linv, fac.M, fold(r) if r_b else r)
-    else:  # only the noise is batched: one forward pass for the mean, shared by the batch
+    if r_b:
+        m = r.shape[2]
+        rows = jnp.moveaxis(r, 0, 1).reshape(n, axis_size * m, b)
+    else:  # nothing batched (cannot happen through vmap, kept total)
         m = r.shape[1]
-        z = _forward_rows(fac.Linv, fac.M, r)
-        z = jnp.broadcast_to(z[:, None], (n, axis_size, m, b)).reshape(n, axis_size * m, b)
-    if xi is not None:
-        xi = xi.astype(z.dtype)
-        z = z + (fold(xi) if xi_b else jnp.tile(xi, (1, axis_size, 1)))
-    elif not r_b:  # nothing batched (cannot happen through vmap, kept total)
-        z = jnp.tile(z, (1, axis_size, 1))
-    x = _backward_rows(fac.Linv, fac.M, z)
+        rows = jnp.tile(r, (1, axis_size, 1))
+    x = _substitute_rows(fac.Linv, fac.M, rows)
     x = jnp.moveaxis(x.reshape(n, axis_size, m, b), 1, 0)
     return x, fac.ok, fac.first_bad
 
@@ -399,29 +360,10 @@ def _solve_rows_vmap_rule(
     D_b, S_b, r_b = in_batched
     if not D_b and not S_b:
         # one matrix, a batch of right-hand sides: factor once, the batch becomes GEMM rows
-        return _rows_batched(axis_size, D, S, r, r_b, None, False), (True, False, False)
+        return _rows_batched(axis_size, D, S, r, r_b), (True, False, False)
     # the matrix itself is batched: every element needs its own factorisation
     bcast = lambda a, batched: a if batched else jnp.broadcast_to(a, (axis_size, *a.shape))
     out = jax.vmap(_solve_rows_plain)(bcast(D, D_b), bcast(S, S_b), bcast(r, r_b))
-    return out, (True, True, True)
-
-
-@jax.custom_batching.custom_vmap
-def _sample_rows_vmappable(D: Array, S: Array, r: Array, xi: Array) -> tuple[Array, Array, Array]:
-    return _solve_rows_unbatched(D, S, r, xi)
-
-
-@_sample_rows_vmappable.def_vmap
-def _sample_rows_vmap_rule(
-    axis_size: int, in_batched: list[Any], D: Array, S: Array, r: Array, xi: Array
-) -> tuple[tuple[Array, Array, Array], tuple[bool, bool, bool]]:
-    D_b, S_b, r_b, xi_b = in_batched
-    if not D_b and not S_b:
-        # one matrix, many samples (vmap over keys): one factorisation and, when only the
-        # noise is batched, one forward pass; the samples are the rows of the backward GEMMs
-        return _rows_batched(axis_size, D, S, r, r_b, xi, xi_b), (True, False, False)
-    bcast = lambda a, batched: a if batched else jnp.broadcast_to(a, (axis_size, *a.shape))
-    out = jax.vmap(_solve_rows_plain)(bcast(D, D_b), bcast(S, S_b), bcast(r, r_b), bcast(xi, xi_b))
     return out, (True, True, True)
 
 
@@ -467,44 +409,6 @@ def _tridiag_solve_rows_jvp(
     dx, _, _ = _solve_rows_plain(D, S, dr - _tridiag_matvec_rows(dD, dS, x))
     float0 = lambda a: np.zeros(np.shape(a), dtype=jax.dtypes.float0)
     return (x, ok, first_bad), (dx, float0(ok), float0(first_bad))
-
-
-@jax.custom_jvp
-def _tridiag_sample_rows(D: Array, S: Array, r: Array, xi: Array) -> tuple[Array, Array, Array]:
-    """``x = A⁻¹ r + L⁻ᵀ ξ`` for block-tridiagonal SPD ``A = L Lᵀ``, with status.
-
-    With ``ξ ~ N(0, I)`` this is an exact sample of ``N(A⁻¹ r, A⁻¹)`` (``Cov(L⁻ᵀ ξ) =
-    L⁻ᵀ L⁻¹ = A⁻¹``): the forward substitution gives ``z = L⁻¹ r`` and the backward pass is
-    run on ``z + ξ``. Under ``vmap`` over ``ξ`` (and/or ``r``) alone the factorisation and the
-    forward pass of an unbatched ``r`` are shared and the samples are the rows of the
-    backward GEMMs.
-
-    Args:
-        D: ``(n, b, b)`` symmetric diagonal blocks.
-        S: ``(n−1, b, b)`` sub-diagonal blocks ``A_{I+1,I}``.
-        r: ``(n, m, b)`` right-hand sides as rows.
-        xi: ``(n, m, b)`` standard normal noise as rows.
-
-    Returns:
-        ``x`` ``(n, m, b)``, ``ok``, ``first_bad`` as :func:`_tridiag_solve_rows`.
-
-    Derivatives: as for :func:`_tridiag_solve_rows`, only the lower triangles of ``D`` are
-    read, so tangents of ``D`` are assumed symmetric (as they are when ``D`` is built
-    symmetric, e.g. the pair blocks of constrained synthesis).
-    """
-    return _sample_rows_vmappable(D, S, r, xi)
-
-
-@_tridiag_sample_rows.defjvp
-def _tridiag_sample_rows_jvp(
-    primals: tuple[Array, Array, Array, Array], tangents: tuple[Array, Array, Array, Array]
-) -> tuple[tuple[Array, Array, Array], tuple[Array, Any, Any]]:
-    out = _tridiag_sample_rows(*primals)
-    # the derivative of L⁻ᵀ ξ through the Cholesky factor: differentiate the plain
-    # (autodiff-transparent, hence transposable) implementation
-    _, dx = jax.jvp(lambda *a: _solve_rows_plain(*a)[0], primals, tangents)
-    float0 = lambda a: np.zeros(np.shape(a), dtype=jax.dtypes.float0)
-    return out, (dx, float0(out[1]), float0(out[2]))
 
 
 # --------------------------------------------------------------------------------------------

@@ -39,7 +39,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from mtex_jax._motion import Motion
 from mtex_jax._paths import path_of_length, random_path, shortest_path
-from mtex_jax._synthesis import Weighting, _constrained
+from mtex_jax._synthesis import Weighting, _constrained, _standard_normal
 from mtex_jax._texton import Texton, frame_terms, init_terms
 
 __all__ = ["Synthesis", "choreograph", "match_texton", "synthesize"]
@@ -336,7 +336,7 @@ def _synthesize_path(
     if key is None:
         v = jnp.zeros((n_pad, l_pad - 2, k), dt)
     else:
-        v = jax.random.normal(key, (n_pad, l_pad - 2, k), dt)
+        v = _standard_normal(key, (n_pad, l_pad - 2, k), dt)
     out = _path_core_jit(
         tex,
         jnp.asarray(lab_p),
