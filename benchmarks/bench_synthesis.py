@@ -54,6 +54,7 @@ import numpy as np  # noqa: E402
 
 try:
     from mtex_jax._synthesis import (
+        _bridge_usable,
         _draw_noise,
         _equations,
         _normal_system,
@@ -65,6 +66,7 @@ try:
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
     from mtex_jax._synthesis import (
+        _bridge_usable,
         _draw_noise,
         _equations,
         _normal_system,
@@ -153,6 +155,7 @@ def main() -> None:
     load_before = os.getloadavg()
     rng = np.random.default_rng(0)
     tex = random_texton(rng, D, k)
+    assert bool(_bridge_usable(tex.A1, tex.A2, L - 4))  # the bridge rows time the bridge
     Y = np.asarray(tex.mu) + rng.standard_normal((4, k)) @ np.asarray(tex.C).T
     start, end = jnp.asarray(Y[:2]), jnp.asarray(Y[2:])
     key = jax.random.key(0)

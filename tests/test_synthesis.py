@@ -14,7 +14,7 @@ from jax.test_util import check_grads
 from scipy import stats
 
 from mtex_jax._synthesis import (
-    _bridge,
+    _bridge_usable,
     _equations,
     _sincos_turn,
     _solve_constrained,
@@ -405,8 +405,19 @@ def test_standard_normal_is_standard_normal():
     # independent halves: the cosine and the sine parts are uncorrelated
     h = z.size // 2
     assert abs(np.corrcoef(z[:h], z[h : 2 * h])[0, 1]) < 5 / np.sqrt(h)
-    z32 = _standard_normal(jax.random.key(1), (1000, 3), jnp.float32)
-    assert z32.dtype == jnp.float32 and z32.shape == (1000, 3)
+    z32 = _standard_normal(jax.random.key(1), (20001, 3), jnp.float32)
+    assert z32.dtype == jnp.float32 and z32.shape == (20001, 3)
+    assert stats.kstest(np.asarray(z32, np.float64).ravel(), "norm").pvalue > 1e-6
+    # an odd size: the last sine is dropped, the rest is the same draw
+    odd = np.asarray(_standard_normal(jax.random.key(2), (7,), jnp.float64))
+    even = np.asarray(_standard_normal(jax.random.key(2), (8,), jnp.float64))
+    assert odd.shape == (7,) and np.isfinite(odd).all()
+    u = np.asarray(jax.random.uniform(jax.random.key(2), (2, 4), jnp.float64))
+    r = np.sqrt(-2 * np.log1p(-u[0]))
+    np.testing.assert_allclose(
+        even, np.concatenate([r * np.cos(2 * np.pi * u[1]), r * np.sin(2 * np.pi * u[1])]), 1e-13
+    )
+    np.testing.assert_allclose(odd, even[:7], 1e-13)
     u = np.concatenate(
         [np.random.default_rng(0).uniform(size=100_000), [0.0, 0.25, 0.5, 0.75, 1 - 2**-53]]
     )
@@ -450,8 +461,7 @@ def test_bridge_at_paper_scale_equals_banded_solve_and_dense(rho):
         out = np.asarray(synthesize_texton(tex, key, length, ys[:2], ys[-2:]))
         x = (out - t["mu"]) @ t["C"]
         w = jnp.asarray(v) @ tex.B.T
-        _, _, usable = _bridge(tex, w, jnp.asarray(xs[:2]), jnp.asarray(xs[-2:]), "whitened")
-        assert bool(usable) == (rho < 1), (rho, length)
+        assert bool(_bridge_usable(tex.A1, tex.A2, length - 4)) == (rho < 1), (rho, length)
         eqs = _equations(
             tex, length, w, jnp.asarray(ys[:2]), jnp.asarray(ys[-2:]), None, "whitened"
         )
@@ -464,3 +474,87 @@ def test_bridge_at_paper_scale_equals_banded_solve_and_dense(rho):
             held[:2] = held[-2:] = True
             ref = dense_lstsq(tex, v, np.where(held[:, None], xs, 0.0), held, whiten=True)
             assert np.linalg.norm(x - ref) <= 1e-9 * np.linalg.norm(ref)
+
+
+def test_bridge_under_vmap_over_poses_textons_and_keys():
+    """The bridge's batched form (one texton; noises and/or key poses batched) and its
+    generic form (textons batched) equal single calls; vmap over poses factorises once (no
+    batched LAPACK call, also not in the banded branch of the fallback)."""
+    tex = make_texton(40, D=8, k=3)
+    length = 23  # n = 19 free frames: not a multiple of the recursion's block of 4
+    rng = np.random.default_rng(9)
+    S = jnp.asarray(rng.standard_normal((5, 2, 8)))
+    E = jnp.asarray(rng.standard_normal((5, 2, 8)))
+    keys = jax.random.split(jax.random.key(3), 5)
+    one = lambda t, key, s, e: synthesize_texton(t, key, length, s, e)
+    single = np.stack([np.asarray(one(tex, keys[i], S[i], E[i])) for i in range(5)])
+    both = jax.jit(jax.vmap(one, in_axes=(None, 0, 0, 0)))(tex, keys, S, E)
+    np.testing.assert_allclose(np.asarray(both), single, rtol=1e-10, atol=1e-10)
+    poses = jax.jit(jax.vmap(one, in_axes=(None, None, 0, 0)))(tex, keys[0], S, E)
+    ref = np.stack([np.asarray(one(tex, keys[0], S[i], E[i])) for i in range(5)])
+    np.testing.assert_allclose(np.asarray(poses), ref, rtol=1e-10, atol=1e-10)
+    jaxpr = jax.make_jaxpr(jax.vmap(one, in_axes=(None, None, 0, 0)))(tex, keys[0], S, E)
+
+    def lapack_shapes(jp):
+        for eqn in jp.eqns:
+            if eqn.primitive.name in ("cholesky", "triangular_solve"):
+                yield tuple(eqn.invars[0].aval.shape)
+            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+                yield from lapack_shapes(sub)
+
+    shapes = list(lapack_shapes(jaxpr.jaxpr))
+    assert shapes and all(len(s) == 2 for s in shapes), shapes
+    # textons batched (one contracting, one amplifying: bridge and banded fallback mixed)
+    amp = eqx.tree_at(lambda t: t.A1, tex, tex.A1 * 3.0)
+    assert bool(_bridge_usable(tex.A1, tex.A2, length - 4))
+    assert not bool(_bridge_usable(amp.A1, amp.A2, length - 4))
+    stacked = jax.tree.map(lambda a, b: jnp.stack([a, b]), tex, amp)
+    texs = jax.jit(jax.vmap(one, in_axes=(0, None, None, None)))(stacked, keys[0], S[0], E[0])
+    for i, t in enumerate((tex, amp)):
+        ref_i = np.asarray(one(t, keys[0], S[0], E[0]))
+        np.testing.assert_allclose(np.asarray(texs[i]), ref_i, rtol=1e-9, atol=1e-9)
+
+
+def test_amplifying_texton_gradients_stay_finite():
+    """A texton that overflows over the segment is solved banded; its gradients (also with
+    respect to A1, through the unused bridge branch) stay finite."""
+    tex = make_texton(41, D=5, k=2)
+    tex = eqx.tree_at(lambda t: t.A1, tex, tex.A1 * 1.6)
+    length = 1200
+    assert not bool(_bridge_usable(tex.A1, tex.A2, length - 4))
+    rng = np.random.default_rng(1)
+    s0, e0 = jnp.asarray(rng.standard_normal((2, 5))), jnp.asarray(rng.standard_normal((2, 5)))
+
+    def f(A1):
+        t = eqx.tree_at(lambda q: q.A1, tex, A1)
+        return jnp.sum(synthesize_texton(t, jax.random.key(0), length, s0, e0)[length // 2])
+
+    g = jax.jit(jax.grad(f))(tex.A1)
+    assert np.isfinite(np.asarray(g)).all()
+
+
+def test_bridge_float32_smoke():
+    tex32 = jax.tree.map(lambda a: a.astype(jnp.float32), make_texton(42, D=6, k=3))
+    rng = np.random.default_rng(4)
+    s0 = rng.standard_normal((2, 6)).astype(np.float32)
+    e0 = rng.standard_normal((2, 6)).astype(np.float32)
+    out = synthesize_texton(tex32, jax.random.key(1), 30, s0, e0)
+    assert out.dtype == jnp.float32 and np.isfinite(np.asarray(out)).all()
+    assert bool(_bridge_usable(tex32.A1, tex32.A2, 26))  # the bridge, not the fallback
+    # the conditional mean against float64 (the noise draws differ between dtypes)
+    mean = np.asarray(synthesize_texton(tex32, None, 30, s0, e0))
+    mean64 = np.asarray(synthesize_texton(make_texton(42, D=6, k=3), None, 30, s0, e0))
+    err = np.abs(mean - mean64).max() / np.abs(mean64).max()
+    assert err < 1e-4, err
+
+
+@pytest.mark.parametrize("fixed_edit", [False, True])
+def test_non_finite_texton_raises_not_nan(fixed_edit):
+    """NaN in the texton's drift reaches neither the bridge's nor the banded solve's output
+    silently: the runtime check raises."""
+    tex = make_texton(43, D=5, k=2)
+    bad = eqx.tree_at(lambda t: t.d, tex, tex.d.at[0].set(jnp.nan))
+    y2 = np.zeros((2, 5))
+    fixed = (np.arange(12) == 5, np.zeros((12, 5))) if fixed_edit else None
+    with pytest.raises(Exception, match="non-finite"):
+        jax.block_until_ready(synthesize_texton(bad, jax.random.key(0), 12, y2, y2, fixed))

@@ -27,7 +27,7 @@ has the same static shapes, and the system is solved by :func:`mtex_jax._linalg`
 With both ends held and no edits (the case of a texton between two key poses) the same
 solution comes from the dynamics recursion itself (:func:`_bridge`): the free motion from the
 start frames plus the control, found from a ``2k × 2k`` system, that brings it to the end
-frames; ``O(l·k²)`` per sample, about 3× faster than the banded solve for one texton.
+frames; ``O(l·k²)`` per sample, 3–4× faster than the banded solve for one texton.
 """
 
 from __future__ import annotations
@@ -106,7 +106,8 @@ def synthesize_texton(
     ``O(l·k²)`` per sample after ``O(log l)`` products of ``2k × 2k`` matrices), unless the
     texton amplifies over the segment so much that the recursion would lose accuracy; then,
     and with edits or an open end, the masked normal equations and the banded solver
-    (``O(l·k³)``). Both give the same least-squares solution (to about 1e-12, tested). Under
+    (``O(l·k³)``). Both give the same least-squares solution (to rounding; tested against
+    dense least squares at 1e-9 relative). Under
     ``vmap`` over keys everything that does not depend on the noise is computed once.
 
     ``length`` is static; the mask and poses are arrays, so different edits do not recompile.
@@ -442,12 +443,14 @@ def _solve_constrained(tex: Texton, eqs: _Equations, w: Array | None = None) -> 
 
 
 def _observe(tex: Texton, x: Array, ok: Array) -> Array:
-    """``μ + C x_t`` as one GEMM ``[x, 1] [Cᵀ; μ]``; a failed solve raises (``eqx.error_if``)."""
+    """``μ + C x_t`` as one GEMM ``[x, 1] [Cᵀ; μ]``; a failed solve or non-finite states
+    (e.g. a texton with NaN in ``d``) raise (``eqx.error_if``)."""
     proj = jnp.concatenate([tex.C.T, tex.mu[None, :]], axis=0)  # (k+1, D)
     proj = eqx.error_if(
         proj,
-        ~ok,
-        "synthesize_texton: normal matrix not positive definite (non-finite or singular texton B?)",
+        ~(ok & jnp.all(jnp.isfinite(x))),
+        "synthesize_texton: normal matrix not positive definite or non-finite states"
+        " (non-finite or singular texton parameters?)",
     )
     x1 = jnp.concatenate([x, jnp.ones((x.shape[0], 1), x.dtype)], axis=1)
     return x1 @ proj
@@ -459,12 +462,14 @@ def _observe(tex: Texton, x: Array, ok: Array) -> Array:
 
 # frames per step of the blocked forward recursion of the batched bridge
 _BRIDGE_BLOCK = 4
-# largest entry of the propagators [I 0] F̃^p (p = 1, 2, 4, …, n) for which the bridge is
-# used; beyond it (a texton that amplifies over the segment) the banded solve is used instead
-# (the same least-squares solution). The bridge's relative error grows like eps·growth²:
-# measured 1.5e-11 at growth 20 and 8.6e-8 at growth 2,600 (length 172, k = 15), 1e-13 or
-# less for contracting textons.
-_BRIDGE_MAX_GROWTH = 100.0
+# Largest entry of the propagators [I 0] F̃^p (p = 1, 2, 4, …, n) for which the bridge is
+# used, by floating-point item size; beyond it (a texton that amplifies over the segment) the
+# banded solve is used instead (the same least-squares solution). The bridge's relative error
+# grows roughly like eps·growth²: float64 (length 172, k = 15) 1e-13 or less for contracting
+# textons, 1.5e-11 at growth 20, 8.6e-8 at 2,600; float32 2.6e-5 at growth 7.7 (the banded
+# solve: 7e-6), 8.4e-4 at 40. The textons learned from the CMU salsa clips have growth 4–8 over
+# their longest segments (one 31, one 160: that one is solved banded).
+_BRIDGE_MAX_GROWTH = {8: 100.0, 4: 10.0}
 
 
 def _sym(a: Array) -> Array:
@@ -487,24 +492,14 @@ def _adjoint_rows(Fa: Array, k: int, n: int) -> Array:
     return V
 
 
-def _growth_powers(n: int) -> list[int]:
-    """The powers ``p`` at which the bridge's growth is measured: ``1, 2, 4, … ≤ n`` and ``n``."""
-    ps = [1]
-    while 2 * ps[-1] <= n:
-        ps.append(2 * ps[-1])
-    return ps if ps[-1] == n else [*ps, n]
+def _gramian(Fa: Array, Pm: Array, n: int) -> Array:
+    """``X_n = Σ_{m=1}^n (F̃ᵐ)ᵀ Pm F̃ᵐ`` by doubling.
 
-
-def _gramian(Fa: Array, Pm: Array, k: int, n: int) -> tuple[Array, Array]:
-    """``X_n = Σ_{m=1}^n (F̃ᵐ)ᵀ Pm F̃ᵐ`` by doubling, and the growth ``max |[I 0] F̃ᵖ|``.
-
-    ``X_{a+b} = X_a + (F̃ᵃ)ᵀ X_b F̃ᵃ``: ``O(log n)`` products of ``2k × 2k`` matrices; the
-    powers ``F̃ᵖ`` met on the way give the growth at the powers of :func:`_growth_powers`.
+    ``X_{a+b} = X_a + (F̃ᵃ)ᵀ X_b F̃ᵃ``: ``O(log n)`` products of ``2k × 2k`` matrices.
     """
     RF: Array | None = None
     RX: Array | None = None
     PF, PX = Fa, Fa.T @ Pm @ Fa  # F̃¹, X_1
-    growth = jnp.max(jnp.abs(PF[:k]))
     j = n
     while j:
         if j & 1:
@@ -517,9 +512,36 @@ def _gramian(Fa: Array, Pm: Array, k: int, n: int) -> tuple[Array, Array]:
         if j:
             PX = PX + PF.T @ PX @ PF
             PF = PF @ PF
+    assert RX is not None
+    return RX
+
+
+def _bridge_usable(A1: Array, A2: Array, n: int) -> Array:
+    """Whether the bridge recursion is accurate for this texton over ``n`` free frames.
+
+    The growth ``max |[I 0] F̃ᵖ|`` over ``p = 1, 2, 4, … ≤ n`` and ``p = n`` (a proxy for
+    the largest propagator over the segment, from ``O(log n)`` squarings of
+    ``F̃ = [[A1ᵀ, A2ᵀ], [I, 0]]``, no derivatives) must be finite and at most
+    ``_BRIDGE_MAX_GROWTH`` for the dtype.
+    """
+    A1, A2 = lax.stop_gradient(A1), lax.stop_gradient(A2)
+    k = A1.shape[0]
+    eye, zero = jnp.eye(k, dtype=A1.dtype), jnp.zeros((k, k), A1.dtype)
+    PF = jnp.block([[A1.T, A2.T], [eye, zero]])
+    growth = jnp.max(jnp.abs(PF[:k]))
+    RF: Array | None = None
+    j = n
+    while j:
+        if j & 1:
+            RF = PF if RF is None else PF @ RF
+        j >>= 1
+        if j:
+            PF = PF @ PF
             growth = jnp.maximum(growth, jnp.max(jnp.abs(PF[:k])))
-    assert RF is not None and RX is not None
-    return RX, jnp.maximum(growth, jnp.max(jnp.abs(RF[:k])))
+    assert RF is not None
+    growth = jnp.maximum(growth, jnp.max(jnp.abs(RF[:k])))
+    limit = _BRIDGE_MAX_GROWTH.get(jnp.dtype(A1.dtype).itemsize, 10.0)
+    return jnp.isfinite(growth) & (growth <= limit)
 
 
 def _recursion(A1: Array, A2: Array, u: Array, reverse: bool = False) -> Array:
@@ -568,7 +590,7 @@ def _start_terms(p: _BridgeInputs, n: int) -> Array:
     return jnp.pad(st, ((0, n - 2), (0, 0)))
 
 
-def _bridge_single(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array, Array]:
+def _bridge_single(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array]:
     """:func:`_bridge` for one sample: ``O(log n)`` small products and three vector scans.
 
     ``ZᵀZ = Sᵀ X_n S`` with the Gramian ``X_n = Σ_m (F̃ᵐ)ᵀ [[M, 0], [0, 0]] F̃ᵐ``
@@ -580,16 +602,14 @@ def _bridge_single(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array, Arra
     n, k = p.w.shape[0] - 2, p.A1.shape[0]
     Wt, M, Fa, S = _bridge_parts(p, whitened)
     Pm = jnp.zeros((2 * k, 2 * k), dt).at[:k, :k].set(M)
-    X, growth = _gramian(Fa, Pm, k, n)
-    usable = jnp.isfinite(growth) & (growth <= _BRIDGE_MAX_GROWTH)
-    X = jnp.where(usable, X, 0.0)
+    X = _gramian(Fa, Pm, n)
     Lc = jnp.linalg.cholesky(jnp.eye(2 * k, dtype=dt) + _sym(S.T @ X @ S))
     f = p.d + p.w  # (l−2, k): f_j = d + B v_j, row j−2
     fa = f[:n] + _start_terms(p, n)
     xu = _recursion(p.A1, p.A2, fa)  # the free (noise-driven) motion, frames 2 … l−3
     xl3, xl4 = xu[-1], xu[-2]
     xe = p.xe
-    # c_b − G_b x_u: the two end equations' residuals at the free motion (whitened units)
+    # c_b − G_b x_u: the two end equations' residuals at the free motion (units of W·)
     e = jnp.concatenate(
         [
             (f[n] - xe[0] + p.A1 @ xl3 + p.A2 @ xl4) @ Wt,
@@ -597,7 +617,7 @@ def _bridge_single(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array, Arra
         ]
     )
     alpha = jsl.cho_solve((Lc, True), e)
-    Sa = jnp.where(usable, S @ alpha, 0.0)  # [U_{l−2} α; U_{l−1} α]
+    Sa = S @ alpha  # [U_{l−2} α; U_{l−1} α]
     # U_i α for i = l−3 … 2: the adjoint recursion u_i = A1ᵀ u_{i+1} + A2ᵀ u_{i+2} from
     # the two end values, entered as inputs of its first two steps
     ua, ub = Sa[:k], Sa[k:]
@@ -605,7 +625,7 @@ def _bridge_single(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array, Arra
     seed = seed.at[-2].add(p.A2.T @ ua)
     u = _recursion(p.A1.T, p.A2.T, seed, reverse=True)
     x = xu + _recursion(p.A1, p.A2, u @ M.T)
-    return _with_ends(p, x), _chol_ok(Lc), usable
+    return _with_ends(p, x), _chol_ok(Lc)
 
 
 def _with_ends(p: _BridgeInputs, xf: Array) -> Array:
@@ -639,41 +659,50 @@ def _block_propagators(A1: Array, A2: Array, m: int) -> tuple[Array, Array]:
     return jnp.concatenate(rows, axis=0), H
 
 
-def _bridge_batched(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array, Array]:
-    """:func:`_bridge` for a batch of noises ``p.v`` ``(N, l−2, k)`` (the rest shared).
+def _bridge_batched(
+    p: _BridgeInputs, whitened: bool, w_b: bool, poses_b: bool, N: int
+) -> tuple[Array, Array]:
+    """:func:`_bridge` for a batch of ``N`` noises and/or key poses of one texton.
 
-    The noise-independent parts are built once, with ``U_i`` explicit
-    (:func:`_adjoint_rows`); then every sample is linear in its noise: ``α`` from one GEMM
-    with ``Zᵀ`` (``Ev``), the right-hand sides of the recursion blocked by ``m`` frames
-    (:func:`_block_propagators`) ``R = v K + α P + R₀`` from two GEMMs, and ``⌈n/m⌉``
-    sequential GEMMs ``X_b = c_b Tᵀ + R_b`` over the batch, in place in ``R`` (batch-major,
-    so that no transposed copy of the batch is made).
+    ``p.w`` is ``(N, l−2, k)`` if ``w_b`` (else ``(l−2, k)``, shared), ``p.x01`` and ``p.xe``
+    ``(N, 2, k)`` if ``poses_b``. The parts that depend only on the texton are built once,
+    with ``U_i`` explicit (:func:`_adjoint_rows`); every sample is then linear in its noise
+    and poses: ``α`` from one GEMM with ``Zᵀ`` (the rows ``U_i``), the right-hand sides of
+    the recursion blocked by ``m`` frames (:func:`_block_propagators`)
+    ``R = w Hᵀ + α P + R₀`` from two GEMMs, and ``⌈n/m⌉`` sequential GEMMs
+    ``X_b = c_b Tᵀ + R_b`` over the batch, in place in ``R`` (batch-major, so that no
+    transposed copy of the batch is made).
+
+    Returns:
+        states ``(N, l, k)`` and ``ok`` (unbatched).
     """
     w = p.w
     dt = w.dtype
-    N, n, k = w.shape[0], w.shape[1] - 2, p.A1.shape[0]
+    n, k = w.shape[-2] - 2, p.A1.shape[0]
     m = _BRIDGE_BLOCK
     nb = -(-n // m)
     Wt, M, Fa, S = _bridge_parts(p, whitened)
     V = _adjoint_rows(Fa, k, n)  # V_m, m = 1 … n
-    growth = jnp.max(jnp.abs(V[np.asarray(_growth_powers(n)) - 1]))
-    usable = jnp.isfinite(growth) & (growth <= _BRIDGE_MAX_GROWTH)
-    V = jnp.where(usable, V, 0.0)
     U = (V.reshape(n * k, 2 * k) @ S).reshape(n, k, 2 * k)[::-1]  # U_i, i = 2 … l−3
     Uf = U.reshape(n * k, 2 * k)
     MU = jnp.einsum("ab,ibc->iac", M, U)
     Lc = jnp.linalg.cholesky(jnp.eye(2 * k, dtype=dt) + _sym(Uf.T @ MU.reshape(n * k, 2 * k)))
     T, H = _block_propagators(p.A1, p.A2, m)
     blocks = lambda a: jnp.pad(a, ((0, nb * m - n), (0, 0), *[(0, 0)] * (a.ndim - 2)))
-
-    # without noise: f⁰_j = d, the held states moved right
-    xe = p.xe
-    fa0 = p.d + _start_terms(p, n)
-    cb0 = jnp.concatenate([(p.d - xe[0]) @ Wt, (p.d - xe[1] + p.A1 @ xe[0]) @ Wt])
-    e0 = cb0 - fa0.reshape(n * k) @ Uf  # c_b − Zᵀ c_a  (Z_iᵀ c_a,i = U_iᵀ W⁻¹ c_a,i)
-    R0 = blocks(fa0).reshape(nb, m * k) @ H.T
     P = jnp.moveaxis(H @ blocks(MU).reshape(nb, m * k, 2 * k), 2, 0).reshape(2 * k, -1)
+
+    def pose_terms(x01: Array, xe: Array) -> tuple[Array, Array]:
+        # without noise: f⁰_j = d, the held states moved right
+        q = _BridgeInputs(A1=p.A1, A2=p.A2, B=p.B, d=p.d, w=w, x01=x01, xe=xe)
+        fa0 = p.d + _start_terms(q, n)
+        cb0 = jnp.concatenate([(p.d - xe[0]) @ Wt, (p.d - xe[1] + p.A1 @ xe[0]) @ Wt])
+        e0 = cb0 - fa0.reshape(n * k) @ Uf  # c_b − Zᵀ c_a  (Z_iᵀ c_a,i = U_iᵀ W⁻¹ c_a,i)
+        return e0, blocks(fa0).reshape(nb, m * k) @ H.T
+
+    e0, R0 = (jax.vmap(pose_terms) if poses_b else pose_terms)(p.x01, p.xe)
     # per sample: the noise w_j = B v_j
+    if not w_b:
+        w = jnp.broadcast_to(w, (N, *w.shape))
     wa = w[:, :n]
     e = e0 - wa.reshape(N, n * k) @ Uf + jnp.concatenate([w[:, n] @ Wt, w[:, n + 1] @ Wt], 1)
     # (I + ZᵀZ)⁻¹ explicitly (2k × 2k, ≥ I so well conditioned): one GEMM for the batch
@@ -692,32 +721,36 @@ def _bridge_batched(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array, Arr
         return X, lax.dynamic_update_index_in_dim(R, X, b, axis=1)
 
     _, R = lax.fori_loop(0, nb, body, (jnp.zeros((N, m * k), dt), R))
-    ends = lambda a: jnp.broadcast_to(a, (N, 2, k))
-    x = jnp.concatenate([ends(p.x01), R.reshape(N, nb * m, k)[:, :n], ends(xe)], axis=1)
-    return x, _chol_ok(Lc), usable
+    ends = lambda a: a if poses_b else jnp.broadcast_to(a, (N, 2, k))
+    x = jnp.concatenate([ends(p.x01), R.reshape(N, nb * m, k)[:, :n], ends(p.xe)], axis=1)
+    return x, _chol_ok(Lc)
 
 
 def _make_bridge(whitened: bool) -> Any:
-    """:func:`_bridge` for one weighting: ``custom_vmap`` picks the batched form when only the
-    noise is batched; derivatives (``custom_jvp``) are those of the single form."""
+    """:func:`_bridge` for one weighting: ``custom_vmap`` picks the batched form when the
+    texton is shared (only noises and/or key poses batched); derivatives (``custom_jvp``) are
+    those of the single form."""
     single = lambda p: _bridge_single(p, whitened)
 
     @jax.custom_batching.custom_vmap
-    def vmappable(p: _BridgeInputs) -> tuple[Array, Array, Array]:
+    def vmappable(p: _BridgeInputs) -> tuple[Array, Array]:
         return single(p)
 
     @vmappable.def_vmap
     def rule(axis_size: int, in_batched: list[Any], p: _BridgeInputs) -> Any:
-        flags = in_batched[0]
-        others = eqx.tree_at(lambda q: q.w, flags, False)
-        if flags.w and not any(jax.tree_util.tree_leaves(others)):
-            return _bridge_batched(p, whitened), (True, False, False)
+        f = in_batched[0]
+        if not (f.A1 or f.A2 or f.B or f.d):
+            poses_b = bool(f.x01 or f.xe)
+            if poses_b:  # both poses batched (or broadcast) together
+                bc = lambda a, b: a if b else jnp.broadcast_to(a, (axis_size, *a.shape))
+                p = eqx.tree_at(lambda q: (q.x01, q.xe), p, (bc(p.x01, f.x01), bc(p.xe, f.xe)))
+            return _bridge_batched(p, whitened, bool(f.w), poses_b, axis_size), (True, False)
         bcast = lambda a, b: a if b else jnp.broadcast_to(a, (axis_size, *a.shape))
-        out = jax.vmap(single)(jax.tree_util.tree_map(bcast, p, flags))
-        return out, (True, True, True)
+        out = jax.vmap(single)(jax.tree_util.tree_map(bcast, p, f))
+        return out, (True, True)
 
     @jax.custom_jvp
-    def bridge(p: _BridgeInputs) -> tuple[Array, Array, Array]:
+    def bridge(p: _BridgeInputs) -> tuple[Array, Array]:
         return vmappable(p)
 
     @bridge.defjvp
@@ -730,9 +763,7 @@ def _make_bridge(whitened: bool) -> Any:
 _BRIDGES = {True: _make_bridge(True), False: _make_bridge(False)}
 
 
-def _bridge(
-    tex: Texton, w: Array, x01: Array, xe: Array, weighting: str
-) -> tuple[Array, Array, Array]:
+def _bridge(tex: Texton, w: Array, x01: Array, xe: Array, weighting: str) -> tuple[Array, Array]:
     """Constrained synthesis with both ends held and no edits, without the banded solve.
 
     The same least-squares solution as :func:`_solve_constrained`, computed from the
@@ -748,20 +779,17 @@ def _bridge(
         y = c_a + Z α,   (I + ZᵀZ) α = c_b − Zᵀ c_a,   x = G_a⁻¹ y.
 
     ``G_a⁻¹`` is the dynamics recursion, so ``x`` is the noise-driven motion from the start
-    frames with the extra input ``W⁻¹ Z_i α = M U_i α`` (``M = (WᵀW)⁻¹``: ``Q`` whitened,
+    frames with the extra input ``W⁻¹ Z_i α = M U_i α`` (``M = (WᵀW)⁻¹``: ``B Bᵀ`` whitened,
     ``I`` paper), the control that brings it to the end frames. ``U_i = Wᵀ Z_i`` obey the
     adjoint recursion ``U_i = A1ᵀ U_{i+1} + A2ᵀ U_{i+2}`` from ``U_{l−2} = −[Wᵀ, 0]``,
     ``U_{l−1} = −[0, Wᵀ]``, i.e. ``U_i = [I 0] F̃^{l−2−i} S`` with ``F̃ = [[A1ᵀ, A2ᵀ], [I, 0]]``
-    and ``S = −diag(Wᵀ, Wᵀ)``. One sample: :func:`_bridge_single`; a batch of noises for one
-    texton (``vmap`` over keys): :func:`_bridge_batched`.
+    and ``S = −diag(Wᵀ, Wᵀ)``. One sample: :func:`_bridge_single`; a batch for one texton
+    (``vmap`` over keys and/or key poses): :func:`_bridge_batched`. Accurate only for a
+    texton that does not amplify much over the segment (:func:`_bridge_usable`): the caller
+    checks that first.
 
     Returns:
-        states ``(l, k)``, ``ok`` (the ``2k × 2k`` factorisation is finite) and ``usable``:
-        the largest entry of ``[I 0] F̃ᵖ`` (``p = 1, 2, 4, …, n``) is finite and at most
-        ``_BRIDGE_MAX_GROWTH``. When it is not, the caller must use the banded solve; the
-        propagators are then replaced by zeros, so that the unused result stays finite (also
-        for derivatives under a batched ``lax.cond``) unless the free motion itself overflows
-        over the segment.
+        states ``(l, k)`` and ``ok`` (the ``2k × 2k`` factorisation is finite).
     """
     p = _BridgeInputs(A1=tex.A1, A2=tex.A2, B=tex.B, d=tex.d, w=w, x01=x01, xe=xe)
     return _BRIDGES[weighting == "whitened"](p)
@@ -778,8 +806,8 @@ def _constrained(
     """Constrained synthesis by perturb-and-MAP with the equation noise ``v`` ``(l−2, k)``.
 
     Both ends held and no edits (``l ≥ 6``): :func:`_bridge`, unless the texton amplifies
-    over the segment so much (propagator entries above ``_BRIDGE_MAX_GROWTH``) that the
-    recursion would lose accuracy; then, and in every other case, the masked normal
+    over the segment so much (:func:`_bridge_usable`) that the recursion would lose
+    accuracy; then, and in every other case, the masked normal
     equations and the banded solve (:func:`_solve_constrained`; the pair blocks of the
     block-tridiagonal form are built directly from the Gram matrix and the held mask, an
     odd length padded with one held frame). Under ``vmap`` over ``v`` alone (many samples of
@@ -794,7 +822,17 @@ def _constrained(
         return _observe(tex, *_solve_constrained(tex, eqs, w))
     proj = lambda y: (y.astype(dt) - tex.mu) @ tex.C
     x01, xe = proj(start), proj(end)
-    x, ok, usable = _bridge(tex, w, x01, xe, weighting)
+    # the bridge where the texton does not amplify too much over the segment (decided from
+    # the dynamics alone, so unbatched under vmap over keys or poses); an amplifying texton
+    # enters the bridge as A1 = A2 = 0, so that its unused result stays finite (for
+    # derivatives under a batched lax.cond too), and is solved banded
+    usable = _bridge_usable(tex.A1, tex.A2, length - 4)
+    safe = eqx.tree_at(
+        lambda t: (t.A1, t.A2),
+        tex,
+        (jnp.where(usable, tex.A1, 0.0), jnp.where(usable, tex.A2, 0.0)),
+    )
+    x, ok = _bridge(safe, w, x01, xe, weighting)
 
     def banded(_: Any) -> tuple[Array, Array]:
         eqs = _equations(tex, length, w, start, end, None, weighting)
