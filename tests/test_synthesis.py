@@ -10,6 +10,8 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from jax.test_util import check_grads
 from scipy import stats
 
@@ -558,3 +560,34 @@ def test_non_finite_texton_raises_not_nan(fixed_edit):
     fixed = (np.arange(12) == 5, np.zeros((12, 5))) if fixed_edit else None
     with pytest.raises(Exception, match="non-finite"):
         jax.block_until_ready(synthesize_texton(bad, jax.random.key(0), 12, y2, y2, fixed))
+
+
+@settings(deadline=None, max_examples=15)
+@given(
+    k=st.integers(1, 4),
+    length=st.integers(4, 41),
+    n_edit=st.integers(0, 3),
+    paper=st.booleans(),
+    seed=st.integers(0, 10_000),
+)
+def test_random_sizes_match_dense_lstsq(k, length, n_edit, paper, seed):
+    """Random sizes (hypothesis): every path (bridge without edits, banded with them, short
+    lengths) equals dense least squares of the same equations and noise to 1e-9, and the
+    held frames hold."""
+    weighting = "paper" if paper else "whitened"
+    tex = make_texton(seed, D=k + 3, k=k)
+    rng = np.random.default_rng(seed)
+    xs, ys, mask = random_states_case(tex, length, rng, n_edit)
+    held = mask.copy()
+    held[:2] = held[-2:] = True
+    key = jax.random.key(seed)
+    out = np.asarray(
+        synthesize_texton(tex, key, length, ys[:2], ys[-2:], (mask, ys), weighting=weighting)
+        if n_edit
+        else synthesize_texton(tex, key, length, ys[:2], ys[-2:], weighting=weighting)
+    )
+    t = as_np(tex)
+    x = (out - t["mu"]) @ t["C"]
+    ref = dense_lstsq(tex, noise(key, length, k), np.where(held[:, None], xs, 0.0), held, not paper)
+    assert np.linalg.norm(x - ref) <= 1e-9 * np.linalg.norm(ref)
+    np.testing.assert_allclose(out[held], ys[held], rtol=0, atol=1e-9)
