@@ -53,28 +53,19 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 try:
-    from mtex_jax._synthesis import (
-        _bridge_usable,
-        _draw_noise,
-        _equations,
-        _normal_system,
-        _observe,
-        _solve_constrained,
-        synthesize_texton,
-    )
-    from mtex_jax._texton import Texton
+    import mtex_jax  # noqa: F401
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-    from mtex_jax._synthesis import (
-        _bridge_usable,
-        _draw_noise,
-        _equations,
-        _normal_system,
-        _observe,
-        _solve_constrained,
-        synthesize_texton,
-    )
-    from mtex_jax._texton import Texton
+from mtex_jax._synthesis import (  # noqa: E402
+    _bridge_usable,
+    _draw_noise,
+    _equations,
+    _normal_system,
+    _observe,
+    _solve_constrained,
+    synthesize_texton,
+)
+from mtex_jax._texton import Texton  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

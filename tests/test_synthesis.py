@@ -83,6 +83,15 @@ def dense_lstsq(tex: Texton, v: np.ndarray, x_held: np.ndarray, held: np.ndarray
     return x
 
 
+def lapack_shapes(jaxpr):
+    """Operand shapes of every Cholesky and triangular solve in a jaxpr (nested ones too)."""
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in ("cholesky", "triangular_solve"):
+            yield tuple(eqn.invars[0].aval.shape)
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            yield from lapack_shapes(sub)
+
+
 def noise(key, length: int, k: int) -> np.ndarray:
     """The equation noise ``v`` ``(l−2, k)`` that ``synthesize_texton`` draws from ``key``."""
     return np.asarray(_standard_normal(key, (length - 2, k), jnp.float64))
@@ -382,13 +391,6 @@ def test_vmap_over_keys_equals_single_calls_and_factorises_once(weighting, edit)
         np.testing.assert_allclose(out[i], np.asarray(one(keys[i], ys[:2])), atol=1e-10)
     jaxpr = jax.make_jaxpr(jax.vmap(one, in_axes=(0, None)))(keys, ys[:2]).jaxpr
 
-    def lapack_shapes(jp):
-        for eqn in jp.eqns:
-            if eqn.primitive.name in ("cholesky", "triangular_solve"):
-                yield tuple(eqn.invars[0].aval.shape)
-            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-                yield from lapack_shapes(sub)
-
     shapes = list(lapack_shapes(jaxpr))
     assert shapes and all(len(s) == 2 for s in shapes), shapes
     f = jax.jit(lambda s: jax.vmap(one, in_axes=(0, None))(keys[:2], s))
@@ -496,13 +498,6 @@ def test_bridge_under_vmap_over_poses_textons_and_keys():
     ref = np.stack([np.asarray(one(tex, keys[0], S[i], E[i])) for i in range(5)])
     np.testing.assert_allclose(np.asarray(poses), ref, rtol=1e-10, atol=1e-10)
     jaxpr = jax.make_jaxpr(jax.vmap(one, in_axes=(None, None, 0, 0)))(tex, keys[0], S, E)
-
-    def lapack_shapes(jp):
-        for eqn in jp.eqns:
-            if eqn.primitive.name in ("cholesky", "triangular_solve"):
-                yield tuple(eqn.invars[0].aval.shape)
-            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-                yield from lapack_shapes(sub)
 
     shapes = list(lapack_shapes(jaxpr.jaxpr))
     assert shapes and all(len(s) == 2 for s in shapes), shapes
