@@ -44,7 +44,7 @@ from jax import lax
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from mtex_jax._linalg import _pair_blocks, _tridiag_solve_rows
+from mtex_jax._linalg import _pair_blocks, _sym, _tridiag_solve_rows
 from mtex_jax._texton import Texton
 
 __all__ = ["synthesize_texton"]
@@ -470,10 +470,6 @@ _BRIDGE_BLOCK = 4
 # solve: 7e-6), 8.4e-4 at 40. The textons learned from the CMU salsa clips have growth 4–8 over
 # their longest segments (one 31, one 160: that one is solved banded).
 _BRIDGE_MAX_GROWTH = {8: 100.0, 4: 10.0}
-
-
-def _sym(a: Array) -> Array:
-    return 0.5 * (a + a.T)
 
 
 def _adjoint_rows(Fa: Array, k: int, n: int) -> Array:
