@@ -579,10 +579,9 @@ def _bridge_parts(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array, Array
     return Wt, M, Fa, S
 
 
-def _start_terms(p: _BridgeInputs, n: int) -> Array:
-    """``(n, k)``: the held start states moved right in equations 2 and 3."""
-    x0, x1 = p.x01[0], p.x01[1]
-    st = jnp.stack([p.A1 @ x1 + p.A2 @ x0, p.A2 @ x1])
+def _start_terms(A1: Array, A2: Array, x01: Array, n: int) -> Array:
+    """``(n, k)``: the held start states moved right in equations 2 and 3 (``n ≥ 2``)."""
+    st = jnp.stack([A1 @ x01[1] + A2 @ x01[0], A2 @ x01[1]])
     return jnp.pad(st, ((0, n - 2), (0, 0)))
 
 
@@ -601,7 +600,7 @@ def _bridge_single(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array]:
     X = _gramian(Fa, Pm, n)
     Lc = jnp.linalg.cholesky(jnp.eye(2 * k, dtype=dt) + _sym(S.T @ X @ S))
     f = p.d + p.w  # (l−2, k): f_j = d + B v_j, row j−2
-    fa = f[:n] + _start_terms(p, n)
+    fa = f[:n] + _start_terms(p.A1, p.A2, p.x01, n)
     xu = _recursion(p.A1, p.A2, fa)  # the free (noise-driven) motion, frames 2 … l−3
     xl3, xl4 = xu[-1], xu[-2]
     xe = p.xe
@@ -621,11 +620,7 @@ def _bridge_single(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array]:
     seed = seed.at[-2].add(p.A2.T @ ua)
     u = _recursion(p.A1.T, p.A2.T, seed, reverse=True)
     x = xu + _recursion(p.A1, p.A2, u @ M.T)
-    return _with_ends(p, x), _chol_ok(Lc)
-
-
-def _with_ends(p: _BridgeInputs, xf: Array) -> Array:
-    return jnp.concatenate([p.x01, xf, p.xe], axis=0)
+    return jnp.concatenate([p.x01, x, p.xe], axis=0), _chol_ok(Lc)
 
 
 def _chol_ok(Lc: Array) -> Array:
@@ -689,8 +684,7 @@ def _bridge_batched(
 
     def pose_terms(x01: Array, xe: Array) -> tuple[Array, Array]:
         # without noise: f⁰_j = d, the held states moved right
-        q = _BridgeInputs(A1=p.A1, A2=p.A2, B=p.B, d=p.d, w=w, x01=x01, xe=xe)
-        fa0 = p.d + _start_terms(q, n)
+        fa0 = p.d + _start_terms(p.A1, p.A2, x01, n)
         cb0 = jnp.concatenate([(p.d - xe[0]) @ Wt, (p.d - xe[1] + p.A1 @ xe[0]) @ Wt])
         e0 = cb0 - fa0.reshape(n * k) @ Uf  # c_b − Zᵀ c_a  (Z_iᵀ c_a,i = U_iᵀ W⁻¹ c_a,i)
         return e0, blocks(fa0).reshape(nb, m * k) @ H.T
