@@ -129,6 +129,31 @@ def many_instances(texture, seed=0, n_seg=40):
     )
 
 
+def usable_reference(texture):
+    """Key-pose pairs inside the box-plot fence of the within-pair joint jump, each pair
+    decoded on its own."""
+    fm, kp = texture.feature_map, np.asarray(texture.key_poses)
+    jumps = np.array(
+        [
+            np.linalg.norm(np.diff(np.asarray(fm.joint_positions(p)), axis=0), axis=-1).max()
+            for p in kp
+        ]
+    )
+    q1, q3 = np.percentile(jumps, [25, 75])
+    return jumps <= q3 + 1.5 * (q3 - q1), jumps
+
+
+def candidates(texture, path):
+    """Instances of every texton on the path: its usable key poses (all if none is usable)."""
+    lab = np.asarray(texture.key_pose_labels)
+    usable, _ = usable_reference(texture)
+    out = []
+    for p in path:
+        c = np.flatnonzero(lab == p)
+        out.append(c[usable[c]] if usable[c].any() else c)
+    return out
+
+
 def test_key_pose_chain_is_the_minimum_cost_chain(texture):
     """The dynamic programme over instances equals brute-force enumeration of all chains."""
     texture = many_instances(texture)
@@ -139,7 +164,7 @@ def test_key_pose_chain_is_the_minimum_cost_chain(texture):
         path = rng.choice(present, 4)
         got = seq._instances(texture, None, path)
         assert np.all(lab[got] == path)
-        cands = [np.flatnonzero(lab == p) for p in path]
+        cands = candidates(texture, path)
         best = min(_chain_cost_reference(texture, c) for c in itertools.product(*cands))
         assert _chain_cost_reference(texture, got) == pytest.approx(best, rel=1e-9, abs=1e-12)
         keyed = seq._instances(texture, jax.random.key(1), path)
@@ -152,7 +177,9 @@ def test_key_poses_replay_training_transitions_where_they_exist(texture):
     texture = many_instances(texture, seed=1)
     segs = np.asarray(texture.segments)
     nxt = seq._next_segments(texture)
-    i = int(np.flatnonzero((nxt >= 0) & (nxt[np.maximum(nxt, 0)] >= 0))[0])
+    ok, _ = usable_reference(texture)
+    nxt = np.where(ok[np.maximum(nxt, 0)], nxt, -1)  # runs of usable key poses only
+    i = int(np.flatnonzero(ok & (nxt >= 0) & (nxt[np.maximum(nxt, 0)] >= 0))[0])
     run = [i, int(nxt[i]), int(nxt[nxt[i]])]
     path = segs[run, 3]
     got = seq._instances(texture, None, path)
@@ -162,6 +189,39 @@ def test_key_poses_replay_training_transitions_where_they_exist(texture):
     assert seq._instances(texture, None, path[:1]).shape == (1,)
     two = seq._instances(texture, jax.random.key(0), path[:2])
     assert nxt[two[0]] == two[1]
+
+
+def test_outlier_key_poses_are_used_only_when_nothing_else_is_there(texture):
+    """A key-pose pair with a glitch (a jump far beyond the other pairs') is not chosen, even
+    where it would replay a training transition; a texton with only glitches still gets one."""
+    texture = many_instances(texture, seed=2)
+    lab = np.asarray(texture.key_pose_labels)
+    nxt = seq._next_segments(texture)
+    kp = np.array(texture.key_poses)
+    rng = np.random.default_rng(0)
+    kp[:, 1] = kp[:, 0] + 0.05 * rng.standard_normal(kp[:, 0].shape)  # smooth pairs
+    texture = eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(kp))
+    _, before = usable_reference(texture)
+    # the successor of some segment in its clip becomes a glitch: the second frame of the pair
+    # is the first one with every channel moved by one standard deviation
+    a = int(np.flatnonzero((nxt >= 0) & (np.bincount(lab)[lab[np.maximum(nxt, 0)]] > 1))[0])
+    g = int(nxt[a])
+    kp[g, 1] = kp[g, 0] + 1.0
+    tex = eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(kp))
+    usable, jumps = usable_reference(tex)
+    np.testing.assert_allclose(seq._key_pair_jumps(tex), jumps, rtol=1e-9, atol=1e-12)
+    assert not usable[g] and jumps[g] > 3 * np.max(before)
+    path = lab[[a, g]]
+    for key in (None, jax.random.key(0), jax.random.key(1)):
+        got = seq._instances(tex, key, path)
+        assert got[1] != g and lab[got[1]] == lab[g]
+    assert np.array_equal(seq._usable_key_poses(tex), usable)
+    # every pair of that texton a glitch: they stay candidates
+    for j in np.flatnonzero(lab == lab[g]):
+        kp[j, 1] = kp[j, 0] + 1.0
+    tex = eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(kp))
+    got = seq._instances(tex, None, path)
+    assert lab[got[1]] == lab[g] and not seq._usable_key_poses(tex)[got[1]]
 
 
 def test_given_path_with_n_frames_rescales_lengths(texture):

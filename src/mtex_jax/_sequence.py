@@ -8,7 +8,9 @@ A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthe
    transitions are closest to transitions seen in training (texton ``ℓ_m`` asked to reach
    ``K_{m+1}`` where, in its training clip, segment ``m`` reached ``K_next``; cost
    ``‖K_next − K_{m+1}‖²``, zero for a pair of segments that were adjacent in training),
-   by dynamic programming over the path.
+   by dynamic programming over the path. Key poses whose two frames jump far more than the
+   others' (box-plot outliers: capture glitches, cuts at abrupt events) are left out where
+   the texton has other instances.
 2. Texton ``m < n`` is synthesised for ``l_m + 2`` frames with its first two frames held at
    ``K_m`` (the given ``start`` pose for ``m = 1``) and its last two held at ``K_{m+1}``,
    reprojected into its own subspace, ``x = C_{ℓ_m}ᵀ(K_{m+1} − μ_{ℓ_m})`` (MT §5.4,
@@ -170,6 +172,33 @@ def _chain_costs(kp: np.ndarray, nxt: np.ndarray, a: np.ndarray, b: np.ndarray) 
     return cost
 
 
+def _key_pair_jumps(texture: Any) -> np.ndarray:
+    """``(n_seg,)`` jump inside every key-pose pair: the largest displacement of a joint between
+    its two frames (decoded with the texture's feature map), or ``‖K[1] − K[0]‖`` in
+    observation space for a texture learned from raw arrays."""
+    kp = np.asarray(texture.key_poses, dtype=np.float64)
+    fm = texture.feature_map
+    if fm is None:
+        return np.linalg.norm(kp[:, 1] - kp[:, 0], axis=1)
+    # decoding all pairs as one sequence leaves every within-pair jump as it is: the root's
+    # integrated heading and position only move a pair rigidly about the up axis
+    P = np.asarray(fm.joint_positions(kp.reshape(-1, kp.shape[-1])))
+    P = P.reshape(kp.shape[0], 2, -1, P.shape[-1])
+    return np.linalg.norm(P[:, 1] - P[:, 0], axis=-1).max(axis=1)
+
+
+def _usable_key_poses(texture: Any) -> np.ndarray:
+    """``(n_seg,)`` bool: key-pose pairs that are not outliers of the within-pair jump.
+
+    A pair whose jump is beyond Tukey's fence ``q3 + 1.5 (q3 − q1)`` of all pairs' jumps (the
+    usual box-plot outlier rule) is a capture glitch or a cut at an abrupt event; held as a
+    constraint, it would put that jump into the synthesised motion at the boundary.
+    """
+    jumps = _key_pair_jumps(texture)
+    q1, q3 = np.percentile(jumps, [25.0, 75.0])
+    return jumps <= q3 + 1.5 * (q3 - q1)
+
+
 def _instances(texture: Any, key: Array | None, path: np.ndarray) -> np.ndarray:
     """One training segment of texton ``path[m]`` for every ``m`` (index into key_poses).
 
@@ -179,11 +208,15 @@ def _instances(texture: Any, key: Array | None, path: np.ndarray) -> np.ndarray:
     segment of ``ℓ_m`` directly followed by one of ``ℓ_{m+1}``, the chain can use that pair,
     and texton ``m`` then goes from its key poses to the next ones in the number of frames it
     took in the training data. Exact ties (several chains of equal cost) are broken towards
-    segments of median length without a key and at random with one.
+    segments of median length without a key and at random with one. Candidates are the
+    texton's usable key poses (:func:`_usable_key_poses`), all of them if it has none.
     """
     lab = np.asarray(texture.key_pose_labels)
     lengths = np.asarray(texture.segment_lengths, dtype=np.float64)
+    usable = _usable_key_poses(texture)
     cands = [np.flatnonzero(lab == p) for p in path]
+    # outlier key poses only where the texton has nothing else
+    cands = [c[usable[c]] if usable[c].any() else c for c in cands]
     if key is None:
         tie = [np.abs(lengths[c] - np.median(lengths[c])) for c in cands]
     else:
