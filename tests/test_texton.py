@@ -574,6 +574,51 @@ def test_frame_terms_block_and_chunk_arguments_are_validated():
         frame_terms(st, Y, block_size=4, chunk_size=1)
 
 
+@pytest.mark.parametrize("workers", [2, 3, 7, 12])
+def test_frame_terms_split_over_concurrent_executions(workers):
+    """Textons split into row blocks computed by concurrent executions and assembled in place
+    equal the scipy reference (7 textons: blocks of unequal size, more workers than textons),
+    in a short block size so that each block's windows overlap; under jit the call is one
+    computation with the same values."""
+    import warnings
+
+    rng = np.random.default_rng(16)
+    D, k, T = 6, 3, 53
+    ps = [random_texton_np(rng, D, k) for _ in range(7)]
+    st = stack_textons([to_texton(p) for p in ps])
+    Y = rng.standard_normal((T, D)) + 0.5
+    assert _texton._n_parts(workers, st, jnp.asarray(Y)) == min(workers, 7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # e.g. a donated buffer that could not be reused
+        dyn, obs = frame_terms(st, Y, workers=workers, block_size=8)
+    assert dyn.shape == obs.shape == (7, T)
+    for i, p in enumerate(ps):
+        ref_dyn, ref_obs = scipy_frame_terms(p, Y)
+        np.testing.assert_allclose(dyn[i], ref_dyn, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(obs[i], ref_obs, rtol=1e-11, atol=1e-12)
+    jitted = jax.jit(lambda t, y: frame_terms(t, y, workers=workers, block_size=8))(st, Y)
+    np.testing.assert_allclose(jitted[0], dyn, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(jitted[1], obs, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        frame_terms(st, np.where(np.arange(T)[:, None] == 40, np.nan, Y), workers=workers)
+
+
+def test_frame_terms_workers_choice_and_validation():
+    rng = np.random.default_rng(17)
+    st = stack_textons([to_texton(random_texton_np(rng, 4, 2)) for _ in range(3)])
+    small, large = jnp.zeros((10, 4)), jnp.zeros((2**20 // 3 + 1, 4))
+    cores = _texton._available_cores()
+    assert _texton._n_parts(None, st, small) == 1  # too little work: one execution
+    assert _texton._n_parts(None, st, large) == min(cores, 3)
+    assert _texton._n_parts(1, st, large) == 1
+    traced = jax.jit(lambda y: jnp.asarray(_texton._n_parts(2, st, y)))(small)
+    assert int(traced) == 1  # under a trace: one computation
+    Y = rng.standard_normal((12, 4))
+    for bad in (0, -1, 2.5, True, "2"):
+        with pytest.raises(ValueError, match="workers"):
+            frame_terms(st, Y, workers=bad)  # type: ignore[arg-type]
+
+
 def test_prefix_sum_scores_equal_direct_segment_likelihood():
     rng = np.random.default_rng(11)
     T, D, k, n_t = 150, 10, 4, 4

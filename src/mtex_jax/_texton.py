@@ -31,8 +31,11 @@ inputs (use ``jax.config.update("jax_enable_x64", True)`` yourself for float64).
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import equinox as eqx
@@ -1138,7 +1141,12 @@ def _init_coords(tex: Texton, U: Array, s: Array) -> dict[str, Array]:
 
 
 def _frame_terms_impl(
-    textons: Texton, Y: Array, block: int, with_init: bool = False
+    textons: Texton,
+    Y: Array,
+    block: int,
+    with_init: bool = False,
+    out_rows: int | None = None,
+    check: bool = True,
 ) -> tuple[Array, ...]:
     """Time-blocked per-frame terms of a stack of textons, ``(N_t, T)`` each (see frame_terms).
 
@@ -1152,8 +1160,14 @@ def _frame_terms_impl(
     (``init[:, b]`` on the window's first ``W − 1`` frames, ``−inf`` at the last frame), from
     the same projections: ``[E0; E1[k:]]`` is stacked under ``[F1; F2]`` in the per-texton
     GEMM.
+
+    ``out_rows`` (not with ``with_init``): ``dyn`` and ``obs`` get ``out_rows >= N_t`` rows, of
+    which the first ``N_t`` are computed and the others are 0 (the rest of a stack, to be
+    filled in place by :func:`_merge_rows`). ``check=False`` skips the in-trace NaN/inf check
+    of ``Y`` (for callers that checked it eagerly).
     """
-    Y = _error_if_nonfinite(Y, "Y")
+    if check:
+        Y = _error_if_nonfinite(Y, "Y")
     dtype = _float_dtype(Y, textons.mu)
     Y = Y.astype(dtype)
     textons = jax.tree.map(lambda a: a.astype(dtype), textons)
@@ -1221,7 +1235,7 @@ def _frame_terms_impl(
             init = [lax.dynamic_update_slice_in_dim(init[0], init_w, w0, axis=1)]
         return dyn, obs, *init
 
-    zeros = jnp.zeros((n, T), dtype)  # dyn[:, :2] stays 0
+    zeros = jnp.zeros((n if out_rows is None else out_rows, T), dtype)  # dyn[:, :2] stays 0
     carry: tuple[Array, ...] = (zeros, zeros)
     if with_init:  # init[:, T−1] stays −inf (no segment starts at the last frame)
         carry = (*carry, jnp.full((n, T), -jnp.inf, dtype))
@@ -1231,6 +1245,82 @@ def _frame_terms_impl(
 _frame_terms_traced = eqx.debug.assert_max_traces(_frame_terms_impl, max_traces=None)
 _frame_terms_jit = eqx.filter_jit(_frame_terms_traced)
 
+# below this many texton-frames an eager frame_terms call runs as one execution
+_SPLIT_MIN_WORK = 2**20
+
+
+def _merge_rows(
+    first: tuple[Array, Array], rest: Sequence[tuple[Array, Array]], cuts: tuple[int, ...]
+) -> tuple[Array, Array]:
+    """Write the row blocks ``rest`` into ``first`` (donated: updated in place) at ``cuts``."""
+    dyn, obs = first
+    for c, (d, o) in zip(cuts, rest, strict=True):
+        dyn = lax.dynamic_update_slice_in_dim(dyn, d, c, axis=0)
+        obs = lax.dynamic_update_slice_in_dim(obs, o, c, axis=0)
+    return dyn, obs
+
+
+_merge_rows_jit = jax.jit(_merge_rows, static_argnums=2, donate_argnums=0)
+
+
+def _check_workers(workers: Any) -> int | None:
+    if workers is None:
+        return None
+    if isinstance(workers, bool) or not isinstance(workers, int | np.integer) or workers < 1:
+        raise ValueError(f"workers must be a positive int or None, got {workers!r}")
+    return int(workers)
+
+
+def _available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _n_parts(workers: int | None, textons: Texton, Y: Array) -> int:
+    """Concurrent executions for an eager :func:`frame_terms` call (1 under a trace)."""
+    leaves = jax.tree.leaves((textons, Y))
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return 1
+    if any(d.platform != "cpu" for d in Y.devices()):
+        return 1
+    n = textons.n_textons
+    if workers is None:
+        if n * Y.shape[0] < _SPLIT_MIN_WORK:
+            return 1
+        workers = _available_cores()
+    return max(1, min(workers, n))
+
+
+def _frame_terms_split(textons: Texton, Y: Array, block: int, parts: int) -> tuple[Array, Array]:
+    """:func:`_frame_terms_impl` on ``parts`` row blocks of the textons, run concurrently.
+
+    XLA:CPU runs the kernel's per-block batched GEMM and elementwise passes on one core (only
+    the projection GEMM is multi-threaded), so one execution leaves the other cores mostly
+    idle. Here each block of textons is one execution, started from its own host thread
+    (executions from different threads run concurrently); the first writes its rows into
+    outputs of the full height and the others' rows are copied into them in place.
+    ``Y`` has been checked for NaN/inf eagerly.
+    """
+    n = textons.n_textons
+    size = -(-n // parts)
+    cuts = [*range(0, n, size), n]
+    pieces = [
+        jax.tree.map(lambda a, lo=lo, hi=hi: a[lo:hi], textons)
+        for lo, hi in itertools.pairwise(cuts)
+    ]
+
+    def run(i: int) -> tuple[Array, Array]:
+        out = _frame_terms_jit(pieces[i], Y, block, out_rows=n if i == 0 else None, check=False)
+        return jax.block_until_ready(out)
+
+    with ThreadPoolExecutor(max_workers=len(pieces) - 1) as pool:
+        futures = [pool.submit(run, i) for i in range(1, len(pieces))]
+        first = run(0)
+        rest = [f.result() for f in futures]
+    return _merge_rows_jit(first, rest, tuple(cuts[1:-1]))
+
 
 def frame_terms(
     textons: Texton,
@@ -1238,6 +1328,7 @@ def frame_terms(
     *,
     block_size: int | None = None,
     chunk_size: int | None = None,
+    workers: int | None = None,
 ) -> tuple[Float[Array, "*n T"], Float[Array, "*n T"]]:
     """Per-frame log-density terms of every texton on every frame (SPEC §3).
 
@@ -1276,6 +1367,13 @@ def frame_terms(
             ``chunk_size`` textons per step; each texton projects all frames with one GEMM and
             forms ``B⁻¹(x_t − A1 x_{t−1} − A2 x_{t−2} − d)`` with three ``k × k`` GEMMs).
             Slower; kept as an independent implementation. Not combinable with ``block_size``.
+        workers: concurrent executions of an eager call on the CPU: the textons are split into
+            that many blocks, each computed by one execution started from its own host thread,
+            and the rows are assembled in place (XLA:CPU runs the small GEMMs and elementwise
+            passes of one execution on one core). ``None``: the number of cores available to
+            the process when the call has at least 2²⁰ texton-frames, else 1. Under a trace
+            (inside ``jit``/``grad``/``vmap``) the call is always one computation. Results
+            equal those of ``workers=1`` up to rounding.
 
     Returns:
         ``(dyn, obs)``, each ``(N_t, T)`` (``(T,)`` for a single texton), in the promoted
@@ -1284,10 +1382,12 @@ def frame_terms(
     Raises:
         ValueError: if ``Y`` is not ``(T, D)`` with the textons' ``D``, or contains NaN/inf
             (checked eagerly when ``Y`` is concrete, by ``eqx.error_if`` under a trace), or if
-            ``block_size``/``chunk_size`` is not a positive int (or both are given).
+            ``block_size``/``chunk_size``/``workers`` is not a positive int (or both
+            ``block_size`` and ``chunk_size`` are given).
     """
     textons = _check_texton("textons", textons)
     Y = _check_obs("Y", Y, textons.obs_dim)
+    workers = _check_workers(workers)
     if chunk_size is not None:
         if block_size is not None:
             raise ValueError("give at most one of block_size and chunk_size")
@@ -1297,8 +1397,12 @@ def frame_terms(
     single = not textons.is_stacked
     if single:
         textons = jax.tree.map(lambda a: a[None], textons)
-    block = _block_frames(block_size, textons, Y)
-    dyn, obs = _frame_terms_jit(textons, Y, min(block, Y.shape[0]))
+    block = min(_block_frames(block_size, textons, Y), Y.shape[0])
+    parts = _n_parts(workers, textons, Y)
+    if parts > 1:
+        dyn, obs = _frame_terms_split(textons, Y, block, parts)
+    else:  # a concrete Y has been checked for NaN/inf eagerly
+        dyn, obs = _frame_terms_jit(textons, Y, block, check=isinstance(Y, jax.core.Tracer))
     if single:
         return dyn[0], obs[0]
     return dyn, obs
