@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 from jax import lax
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Int
 
 __all__ = [
@@ -1281,7 +1282,7 @@ def _available_cores() -> int:
 def _n_parts(workers: int | None, textons: Texton, Y: Array) -> int:
     """Concurrent executions for an eager :func:`frame_terms` call (1 under a trace)."""
     leaves = jax.tree.leaves((textons, Y))
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+    if any(isinstance(x, Tracer) for x in leaves):
         return 1
     if any(d.platform != "cpu" for d in Y.devices()):
         return 1
@@ -1402,7 +1403,7 @@ def frame_terms(
     if parts > 1:
         dyn, obs = _frame_terms_split(textons, Y, block, parts)
     else:  # a concrete Y has been checked for NaN/inf eagerly
-        dyn, obs = _frame_terms_jit(textons, Y, block, check=isinstance(Y, jax.core.Tracer))
+        dyn, obs = _frame_terms_jit(textons, Y, block, check=isinstance(Y, Tracer))
     if single:
         return dyn[0], obs[0]
     return dyn, obs
