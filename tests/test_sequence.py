@@ -139,8 +139,8 @@ def usable_reference(texture):
             for p in kp
         ]
     )
-    q1, q3 = np.percentile(jumps, [25, 75])
-    return jumps <= q3 + 1.5 * (q3 - q1), jumps
+    q1, med, q3 = np.percentile(jumps, [25, 50, 75])
+    return jumps <= max(q3 + 1.5 * (q3 - q1), 2 * med), jumps
 
 
 def candidates(texture, path):
@@ -222,6 +222,38 @@ def test_outlier_key_poses_are_used_only_when_nothing_else_is_there(texture):
     tex = eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(kp))
     got = seq._instances(tex, None, path)
     assert lab[got[1]] == lab[g] and not seq._usable_key_poses(tex)[got[1]]
+
+
+def test_outlier_rule_without_feature_map_and_degenerate_jumps(texture):
+    """Raw-array textures measure the jump in observation space; equal jumps, mostly static
+    pairs and a NaN pair are handled (nothing flagged / nothing flagged / the NaN pair)."""
+    texture = eqx.tree_at(lambda t: t.feature_map, many_instances(texture, seed=3), None)
+    assert texture.feature_map is None
+    kp = np.array(texture.key_poses)
+    n, D = kp.shape[0], kp.shape[-1]
+    rng = np.random.default_rng(5)
+    step = rng.standard_normal((n, D))
+    step /= np.linalg.norm(step, axis=1, keepdims=True)
+
+    def with_jumps(j):
+        k = kp.copy()
+        k[:, 1] = k[:, 0] + j[:, None] * step
+        return eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(k))
+
+    j = rng.uniform(0.5, 1.0, n)
+    j[[3, 11]] = [4.0, 9.0]  # two glitches
+    tex = with_jumps(j)
+    np.testing.assert_allclose(seq._key_pair_jumps(tex), j, rtol=1e-9)
+    assert np.flatnonzero(~seq._usable_key_poses(tex)).tolist() == [3, 11]
+    assert seq._usable_key_poses(with_jumps(np.full(n, 0.7))).all()
+    static = np.zeros(n)
+    static[: n // 5] = 1e-6  # most pairs do not move: the moving ones are not outliers
+    assert seq._usable_key_poses(with_jumps(static)).all()
+    k = kp.copy()
+    k[:, 1] = k[:, 0] + j[:, None] * step
+    k[5, 1, 0] = np.nan
+    usable = seq._usable_key_poses(eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(k)))
+    assert np.flatnonzero(~usable).tolist() == [3, 5, 11]
 
 
 def test_given_path_with_n_frames_rescales_lengths(texture):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
+import mtex_jax._sequence as seq
 
 FPS = 60.0
 
@@ -74,7 +75,8 @@ def test_fig8_boundaries_smooth_independent_neighbours_jump(salsa):
         "zero-noise boundary max, independent boundary median / max:\n"
         f"{np.array2string(rows, precision=4)}\nboundaries above the real p99 (sampled, "
         f"zero noise, independent, of): {above.sum(axis=0).tolist()}; sampled frames inside "
-        f"textons above it: {inside[0]} of {inside[1]} ({inside[0] / inside[1]:.2%})"
+        f"textons above it: {inside[0]} of {inside[1]} ({inside[0] / inside[1]:.2%}); key-pose "
+        f"pairs left out as outliers: {np.flatnonzero(~seq._usable_key_poses(tex)).tolist()}"
     )
     assert np.all(rows[:, 2] <= p99)  # zero noise: the largest boundary within real jumps
     assert np.all(rows[:, 0] <= p99)  # sampled: the typical boundary within real jumps
@@ -84,4 +86,4 @@ def test_fig8_boundaries_smooth_independent_neighbours_jump(salsa):
     assert share[0] <= max(2.0 * inside[0] / inside[1], 0.02) and share[0] <= 0.05
     assert share[2] > 0.5
     assert np.all(rows[:, 3] > 2 * p99)  # typical independent boundary: far outside them
-    assert np.all(rows[:, 1] < rows[:, 4])  # the worst constrained < the worst independent
+    assert np.all(rows[:, 1] < rows[:, 4])  # the worst sampled boundary < the worst independent

@@ -4,6 +4,7 @@ Every test compares against an independent reference (numpy/scipy re-derivations
 Gaussians, known generating systems) or checks a documented invariant that can fail.
 """
 
+import threading
 from typing import Any
 
 import jax
@@ -575,11 +576,11 @@ def test_frame_terms_block_and_chunk_arguments_are_validated():
 
 
 @pytest.mark.parametrize("workers", [2, 3, 7, 12])
-def test_frame_terms_split_over_concurrent_executions(workers):
-    """Textons split into row blocks computed by concurrent executions and assembled in place
-    equal the scipy reference (7 textons: blocks of unequal size, more workers than textons),
-    in a short block size so that each block's windows overlap; under jit the call is one
-    computation with the same values."""
+def test_frame_terms_split_over_concurrent_executions(workers, monkeypatch):
+    """Textons split into row blocks computed by executions from separate threads and
+    assembled in place equal the scipy reference (7 textons: blocks of unequal size, more
+    workers than textons), in a short block size so that each block's windows overlap; under
+    jit the call is one computation with the same values."""
     import warnings
 
     rng = np.random.default_rng(16)
@@ -587,10 +588,26 @@ def test_frame_terms_split_over_concurrent_executions(workers):
     ps = [random_texton_np(rng, D, k) for _ in range(7)]
     st = stack_textons([to_texton(p) for p in ps])
     Y = rng.standard_normal((T, D)) + 0.5
-    assert _texton._n_parts(workers, st, jnp.asarray(Y)) == min(workers, 7)
+    parts = min(workers, 7)
+    assert _texton._n_parts(workers, st, jnp.asarray(Y)) == parts
+    calls = []  # (thread, rows) of every kernel execution
+    kernel = _texton._frame_terms_jit
+
+    def spy(textons, *args, **kwargs):
+        calls.append((threading.get_ident(), textons.n_textons))
+        return kernel(textons, *args, **kwargs)
+
+    monkeypatch.setattr(_texton, "_frame_terms_jit", spy)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # e.g. a donated buffer that could not be reused
         dyn, obs = frame_terms(st, Y, workers=workers, block_size=8)
+    monkeypatch.undo()
+    # one execution per block, from more than one thread (a pool thread that is done may
+    # take another block), blocks of 7 // parts rows or one more
+    assert len(calls) == parts and len({t for t, _ in calls}) >= 2
+    assert sorted(r for _, r in calls) == sorted(
+        7 * (i + 1) // parts - 7 * i // parts for i in range(parts)
+    )
     assert dyn.shape == obs.shape == (7, T)
     for i, p in enumerate(ps):
         ref_dyn, ref_obs = scipy_frame_terms(p, Y)
@@ -601,6 +618,30 @@ def test_frame_terms_split_over_concurrent_executions(workers):
     np.testing.assert_allclose(jitted[1], obs, rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="NaN or inf"):
         frame_terms(st, np.where(np.arange(T)[:, None] == 40, np.nan, Y), workers=workers)
+
+
+def test_frame_terms_split_keeps_the_callers_thread_local_settings():
+    """The block executions run in other threads under the caller's settings: here x64 is
+    off globally and on in the caller's thread only (``jax.enable_x64``), so a block run
+    under the global setting would compute in float32."""
+    rng = np.random.default_rng(18)
+    ps = [random_texton_np(rng, 6, 3) for _ in range(4)]
+    Y = rng.standard_normal((30, 6))
+    jax.config.update("jax_enable_x64", False)
+    try:
+        with jax.enable_x64(True):
+            st = stack_textons([to_texton(p) for p in ps])
+            dyn, obs = frame_terms(st, Y, workers=3)
+            one = frame_terms(st, Y, workers=1)
+    finally:
+        jax.config.update("jax_enable_x64", True)
+    assert dyn.dtype == obs.dtype == jnp.float64
+    np.testing.assert_allclose(dyn, one[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(obs, one[1], rtol=1e-12, atol=1e-12)
+    for i, p in enumerate(ps):
+        ref_dyn, ref_obs = scipy_frame_terms(p, Y)
+        np.testing.assert_allclose(dyn[i], ref_dyn, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(obs[i], ref_obs, rtol=1e-11, atol=1e-12)
 
 
 def test_frame_terms_workers_choice_and_validation():

@@ -191,12 +191,21 @@ def _usable_key_poses(texture: Any) -> np.ndarray:
     """``(n_seg,)`` bool: key-pose pairs that are not outliers of the within-pair jump.
 
     A pair whose jump is beyond Tukey's fence ``q3 + 1.5 (q3 − q1)`` of all pairs' jumps (the
-    usual box-plot outlier rule) is a capture glitch or a cut at an abrupt event; held as a
-    constraint, it would put that jump into the synthesised motion at the boundary.
+    usual box-plot outlier rule) and beyond twice their median is a capture glitch or a cut at
+    an abrupt event; held as a constraint, it would put that jump into the synthesised motion
+    at the boundary. (The second bound keeps the moving pairs of a texture whose pairs mostly
+    do not move; with a median of 0 nothing is an outlier.) A pair with a non-finite jump is
+    never usable. The fence is the texture's, not the texton's: the fast starts of a texton
+    count as outliers when they are far faster than the texture's typical pair.
     """
     jumps = _key_pair_jumps(texture)
-    q1, q3 = np.percentile(jumps, [25.0, 75.0])
-    return jumps <= q3 + 1.5 * (q3 - q1)
+    finite = np.isfinite(jumps)
+    if not finite.any():
+        return finite
+    q1, med, q3 = np.percentile(jumps[finite], [25.0, 50.0, 75.0])
+    if med <= 0.0:
+        return finite
+    return finite & (jumps <= max(q3 + 1.5 * (q3 - q1), 2.0 * med))
 
 
 def _instances(texture: Any, key: Array | None, path: np.ndarray) -> np.ndarray:

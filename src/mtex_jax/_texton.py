@@ -31,6 +31,7 @@ inputs (use ``jax.config.update("jax_enable_x64", True)`` yourself for float64).
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import os
@@ -1294,30 +1295,51 @@ def _n_parts(workers: int | None, textons: Texton, Y: Array) -> int:
     return max(1, min(workers, n))
 
 
+def _thread_settings() -> Any:
+    """The calling thread's JAX settings that change what a computation is (``enable_x64``,
+    ``default_matmul_precision``, ``debug_nans``/``debug_infs``: thread-local when set by
+    their context managers), as a function that re-enters them in another thread."""
+    # the attributes read each setting's value in this thread (not typed in jax's stubs)
+    cfg: Any = jax.config
+    x64, precision = cfg.jax_enable_x64, cfg.jax_default_matmul_precision
+    nans, infs = cfg.jax_debug_nans, cfg.jax_debug_infs
+
+    def enter(stack: contextlib.ExitStack) -> None:
+        stack.enter_context(jax.enable_x64(x64))
+        stack.enter_context(jax.default_matmul_precision(precision))
+        stack.enter_context(jax.debug_nans(nans))
+        stack.enter_context(jax.debug_infs(infs))
+
+    return enter
+
+
 def _frame_terms_split(textons: Texton, Y: Array, block: int, parts: int) -> tuple[Array, Array]:
     """:func:`_frame_terms_impl` on ``parts`` row blocks of the textons, run concurrently.
 
     XLA:CPU runs the kernel's per-block batched GEMM and elementwise passes on one core (only
     the projection GEMM is multi-threaded), so one execution leaves the other cores mostly
-    idle. Here each block of textons is one execution, started from its own host thread
-    (executions from different threads run concurrently); the first writes its rows into
-    outputs of the full height and the others' rows are copied into them in place.
-    ``Y`` has been checked for NaN/inf eagerly.
+    idle. Here each block of textons (sizes differing by at most one) is one execution,
+    started from its own host thread (executions from different threads run concurrently)
+    under the calling thread's JAX settings; the first writes its rows into outputs of the
+    full height and the others' rows are copied into them in place. ``Y`` has been checked
+    for NaN/inf eagerly.
     """
     n = textons.n_textons
-    size = -(-n // parts)
-    cuts = [*range(0, n, size), n]
+    cuts = [n * i // parts for i in range(parts + 1)]
     pieces = [
         jax.tree.map(lambda a, lo=lo, hi=hi: a[lo:hi], textons)
         for lo, hi in itertools.pairwise(cuts)
     ]
+    settings = _thread_settings()
 
     def run(i: int) -> tuple[Array, Array]:
-        out = _frame_terms_jit(pieces[i], Y, block, out_rows=n if i == 0 else None, check=False)
-        return jax.block_until_ready(out)
+        with contextlib.ExitStack() as stack:
+            settings(stack)
+            out = _frame_terms_jit(pieces[i], Y, block, out_rows=n if i == 0 else None, check=False)
+            return jax.block_until_ready(out)
 
-    with ThreadPoolExecutor(max_workers=len(pieces) - 1) as pool:
-        futures = [pool.submit(run, i) for i in range(1, len(pieces))]
+    with ThreadPoolExecutor(max_workers=parts - 1) as pool:
+        futures = [pool.submit(run, i) for i in range(1, parts)]
         first = run(0)
         rest = [f.result() for f in futures]
     return _merge_rows_jit(first, rest, tuple(cuts[1:-1]))
