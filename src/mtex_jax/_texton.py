@@ -1396,7 +1396,8 @@ def frame_terms(
             passes of one execution on one core). ``None``: the number of cores available to
             the process when the call has at least 2²⁰ texton-frames, else 1. Under a trace
             (inside ``jit``/``grad``/``vmap``) the call is always one computation. Results
-            equal those of ``workers=1`` up to rounding.
+            equal those of ``workers=1`` up to rounding; the blocks' own outputs need
+            ``(1 − 1/workers)`` times the outputs' memory on top, until assembled.
 
     Returns:
         ``(dyn, obs)``, each ``(N_t, T)`` (``(T,)`` for a single texton), in the promoted
