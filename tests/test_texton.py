@@ -522,6 +522,14 @@ def scipy_frame_terms(p, Y):
     return dyn, obs if D > k else np.zeros(T)
 
 
+def assert_terms_equal_reference(ps, Y, dyn, obs):
+    """Rows of ``frame_terms`` of a stack equal ``scipy_frame_terms`` of each texton."""
+    for i, p in enumerate(ps):
+        ref_dyn, ref_obs = scipy_frame_terms(p, Y)
+        np.testing.assert_allclose(dyn[i], ref_dyn, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(obs[i], ref_obs, rtol=1e-11, atol=1e-12)
+
+
 @pytest.mark.parametrize(
     ("T", "block_size"),
     [(1, None), (2, None), (3, None), (3, 1), (10, 3), (10, 4), (10, 10), (10, 64), (41, 8)],
@@ -535,10 +543,7 @@ def test_frame_terms_time_blocks_cover_every_frame(T, block_size):
     Y = rng.standard_normal((T, D)) + 1.0
     dyn, obs = frame_terms(st, Y, block_size=block_size)
     assert dyn.shape == obs.shape == (2, T)
-    for i, p in enumerate(ps):
-        ref_dyn, ref_obs = scipy_frame_terms(p, Y)
-        np.testing.assert_allclose(dyn[i], ref_dyn, rtol=1e-11, atol=1e-12)
-        np.testing.assert_allclose(obs[i], ref_obs, rtol=1e-11, atol=1e-12)
+    assert_terms_equal_reference(ps, Y, dyn, obs)
 
 
 def test_frame_terms_ill_conditioned_q_and_k_equal_d():
@@ -609,10 +614,7 @@ def test_frame_terms_split_over_concurrent_executions(workers, monkeypatch):
         7 * (i + 1) // parts - 7 * i // parts for i in range(parts)
     )
     assert dyn.shape == obs.shape == (7, T)
-    for i, p in enumerate(ps):
-        ref_dyn, ref_obs = scipy_frame_terms(p, Y)
-        np.testing.assert_allclose(dyn[i], ref_dyn, rtol=1e-11, atol=1e-12)
-        np.testing.assert_allclose(obs[i], ref_obs, rtol=1e-11, atol=1e-12)
+    assert_terms_equal_reference(ps, Y, dyn, obs)
     jitted = jax.jit(lambda t, y: frame_terms(t, y, workers=workers, block_size=8))(st, Y)
     np.testing.assert_allclose(jitted[0], dyn, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(jitted[1], obs, rtol=1e-12, atol=1e-12)
@@ -638,10 +640,7 @@ def test_frame_terms_split_keeps_the_callers_thread_local_settings():
     assert dyn.dtype == obs.dtype == jnp.float64
     np.testing.assert_allclose(dyn, one[0], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(obs, one[1], rtol=1e-12, atol=1e-12)
-    for i, p in enumerate(ps):
-        ref_dyn, ref_obs = scipy_frame_terms(p, Y)
-        np.testing.assert_allclose(dyn[i], ref_dyn, rtol=1e-11, atol=1e-12)
-        np.testing.assert_allclose(obs[i], ref_obs, rtol=1e-11, atol=1e-12)
+    assert_terms_equal_reference(ps, Y, dyn, obs)
 
 
 def test_frame_terms_workers_choice_and_validation():
