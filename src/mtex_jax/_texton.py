@@ -1390,14 +1390,15 @@ def frame_terms(
             ``chunk_size`` textons per step; each texton projects all frames with one GEMM and
             forms ``B⁻¹(x_t − A1 x_{t−1} − A2 x_{t−2} − d)`` with three ``k × k`` GEMMs).
             Slower; kept as an independent implementation. Not combinable with ``block_size``.
-        workers: concurrent executions of an eager call on the CPU: the textons are split into
-            that many blocks, each computed by one execution started from its own host thread,
-            and the rows are assembled in place (XLA:CPU runs the small GEMMs and elementwise
-            passes of one execution on one core). ``None``: the number of cores available to
-            the process when the call has at least 2²⁰ texton-frames, else 1. Under a trace
-            (inside ``jit``/``grad``/``vmap``) the call is always one computation. Results
-            equal those of ``workers=1`` up to rounding; the blocks' own outputs need
-            ``(1 − 1/workers)`` times the outputs' memory on top, until assembled.
+        workers: concurrent executions of an eager call of the blocked kernel on the CPU
+            (not used with ``chunk_size``): the textons are split into that many blocks, each
+            computed by one execution started from its own host thread, and the rows are
+            assembled in place (XLA:CPU runs the small GEMMs and elementwise passes of one
+            execution on one core). ``None``: the number of cores available to the process
+            when the call has at least 2²⁰ texton-frames, else 1. Under a trace (inside
+            ``jit``/``grad``/``vmap``) the call is always one computation. Results equal those
+            of ``workers=1`` up to rounding; the blocks' own outputs need ``(1 − 1/workers)``
+            times the outputs' memory on top, until assembled.
 
     Returns:
         ``(dyn, obs)``, each ``(N_t, T)`` (``(T,)`` for a single texton), in the promoted
