@@ -1031,12 +1031,12 @@ _all_terms_traced = eqx.debug.assert_max_traces(_all_terms_impl, max_traces=None
 _all_terms_jit = eqx.filter_jit(_all_terms_traced)
 
 
-def _check_chunk(chunk_size: Any) -> int:
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer):
-        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
-    if chunk_size < 1:
-        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
-    return int(chunk_size)
+def _check_positive_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be >= 1, got {value}")
+    return int(value)
 
 
 # Target size of one time block's projections (all textons), in bytes: small enough to stay in
@@ -1056,11 +1056,7 @@ def _block_frames(block_size: Any, textons: Texton, Y: Array) -> int:
         n, k = textons.n_textons, textons.state_dim
         cols = _BLOCK_BYTES // max(n * (k + 1) * itemsize, 1)
         return min(max(16 * (cols // 16), 16), 1024) - 2
-    if isinstance(block_size, bool) or not isinstance(block_size, int | np.integer):
-        raise ValueError(f"block_size must be a positive int or None, got {block_size!r}")
-    if block_size < 1:
-        raise ValueError(f"block_size must be >= 1, got {block_size}")
-    return int(block_size)
+    return _check_positive_int("block_size", block_size)
 
 
 def _whitened_coords(tex: Texton, ybar: Array) -> dict[str, Array]:
@@ -1266,11 +1262,7 @@ _merge_rows_jit = jax.jit(_merge_rows, static_argnums=2, donate_argnums=0)
 
 
 def _check_workers(workers: Any) -> int | None:
-    if workers is None:
-        return None
-    if isinstance(workers, bool) or not isinstance(workers, int | np.integer) or workers < 1:
-        raise ValueError(f"workers must be a positive int or None, got {workers!r}")
-    return int(workers)
+    return None if workers is None else _check_positive_int("workers", workers)
 
 
 def _available_cores() -> int:
@@ -1416,7 +1408,9 @@ def frame_terms(
     if chunk_size is not None:
         if block_size is not None:
             raise ValueError("give at most one of block_size and chunk_size")
-        dyn, obs, _ = _all_terms_jit(textons, Y, True, False, _check_chunk(chunk_size))
+        dyn, obs, _ = _all_terms_jit(
+            textons, Y, True, False, _check_positive_int("chunk_size", chunk_size)
+        )
         assert dyn is not None and obs is not None
         return dyn, obs
     single = not textons.is_stacked
@@ -1451,7 +1445,9 @@ def init_terms(textons: Texton, Y: ArrayLike, *, chunk_size: int = 1) -> Float[A
     """
     textons = _check_texton("textons", textons)
     Y = _check_obs("Y", Y, textons.obs_dim)
-    _, _, init = _all_terms_jit(textons, Y, False, True, _check_chunk(chunk_size))
+    _, _, init = _all_terms_jit(
+        textons, Y, False, True, _check_positive_int("chunk_size", chunk_size)
+    )
     assert init is not None
     return init
 
