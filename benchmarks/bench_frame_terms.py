@@ -56,10 +56,10 @@ import numpy as np  # noqa: E402
 from _machine import cpu_and_memory  # noqa: E402  (benchmarks/ is on sys.path)
 
 try:
-    from mtex_jax._texton import Texton, _available_cores, frame_terms
+    from mtex_jax.texture._texton import Texton, _available_cores, frame_terms
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-    from mtex_jax._texton import Texton, _available_cores, frame_terms
+    from mtex_jax.texture._texton import Texton, _available_cores, frame_terms
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -37,12 +37,12 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import mtex_jax as mj  # noqa: E402
-from mtex_jax._implicit import (  # noqa: E402
+from mtex_jax.implicit._model import (  # noqa: E402
     ImplicitModel,
     exact_sample_indices,
     tree_sample_indices,
 )
-from mtex_jax._tracking import make_problem, track  # noqa: E402
+from mtex_jax.implicit._tracking import make_problem, track  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))

@@ -68,9 +68,9 @@ except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
     import mtex_jax as mj
 
-from mtex_jax._learn import LearnConfig, greedy_init, learn  # noqa: E402
-from mtex_jax._segment import viterbi_segments  # noqa: E402
-from mtex_jax._texton import (  # noqa: E402
+from mtex_jax.texture._learn import LearnConfig, greedy_init, learn  # noqa: E402
+from mtex_jax.texture._segment import viterbi_segments  # noqa: E402
+from mtex_jax.texture._texton import (  # noqa: E402
     fit_texton,
     frame_terms,
     init_terms,

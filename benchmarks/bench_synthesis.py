@@ -2,9 +2,9 @@
 
 Length ``l = 172``, ``k = 15``, ``D = 60``, float64; first two, last two frames held. Timed:
 
-* ``bridge (public call)``: :func:`mtex_jax._synthesis.synthesize_texton` as a user calls it
+* ``bridge (public call)``: :func:`mtex_jax.texture._synthesis.synthesize_texton` as a user calls it
   (Python input checks + the jitted core), one texton; with both ends held and no edits it
-  uses the bridge recursion (:func:`mtex_jax._synthesis._bridge`);
+  uses the bridge recursion (:func:`mtex_jax.texture._synthesis._bridge`);
 * ``bridge (jit)``: the whole call inside one ``jax.jit`` (key → sample), one texton;
 * ``bridge (vmap N, threefry keys)``: ``jax.jit(jax.vmap(...))`` over ``N`` default
   (threefry) keys, time per texton — the figure the issue's target refers to;
@@ -56,7 +56,7 @@ try:
     import mtex_jax  # noqa: F401
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-from mtex_jax._synthesis import (  # noqa: E402
+from mtex_jax.texture._synthesis import (  # noqa: E402
     _bridge_usable,
     _draw_noise,
     _equations,
@@ -65,7 +65,7 @@ from mtex_jax._synthesis import (  # noqa: E402
     _solve_constrained,
     synthesize_texton,
 )
-from mtex_jax._texton import Texton  # noqa: E402
+from mtex_jax.texture._texton import Texton  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -154,9 +154,9 @@ def main() -> None:
     key_rbg = jax.random.key(0, impl="rbg")
     keys_rbg = jax.random.split(jax.random.key(1, impl="rbg"), nb)
 
-    public = lambda kk: synthesize_texton(tex, kk, L, start, end)
-    one = jax.jit(lambda kk: synthesize_texton(tex, kk, L, start, end))
-    batch = jax.jit(jax.vmap(lambda kk: synthesize_texton(tex, kk, L, start, end)))
+    public = lambda kk: synthesize_texton(kk, tex, L, start, end)
+    one = jax.jit(lambda kk: synthesize_texton(kk, tex, L, start, end))
+    batch = jax.jit(jax.vmap(lambda kk: synthesize_texton(kk, tex, L, start, end)))
     banded = jax.jit(lambda kk: banded_synthesis(tex, kk, L, start, end))
     banded_batch = jax.jit(jax.vmap(lambda kk: banded_synthesis(tex, kk, L, start, end)))
     dense = jax.jit(lambda kk: dense_synthesis(tex, kk, L, start, end))
@@ -332,7 +332,7 @@ warm-up; in each round every variant is timed once (single-texton rows: one unti
   (median {per_v * 1e3:.4f} ms); with rbg keys {rbg_v * 1e3:.4f} ms; drawing the noise alone
   takes {noise_v * 1e3:.4f} ms per texton of that
 - method: the bridge recursion (the free motion from the start frames plus the control that
-  brings it to the end frames, from a 2k × 2k system; `mtex_jax._synthesis._bridge`); the
+  brings it to the end frames, from a 2k × 2k system; `mtex_jax.texture._synthesis._bridge`); the
   same least-squares solution as the banded solve of the masked normal equations:
   banded / bridge **{banded_med / single:.1f}×** (single), **{banded_v / per_v:.1f}×** (vmap)
 - the paper: 25–35 ms per texton

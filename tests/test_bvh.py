@@ -66,7 +66,7 @@ def positions_pair(
     parts = [a, b]
     if pad_to is not None:
         parts.append(a[np.zeros(pad_to - 2 * a.n_frames, dtype=np.int64)])
-    p = positions(mj.concatenate_motions(parts))
+    p = positions(mj.motion.concatenate_motions(parts))
     return p[: a.n_frames], p[a.n_frames : 2 * a.n_frames]
 
 

@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 import mtex_jax as mj
-from mtex_jax._cli import main
+from mtex_jax.cli._main import main
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -74,11 +74,11 @@ def test_demo_main_job(tmp_path):
     out = tmp_path / "out"
     assert (out / "new_dance.gif").is_file() and (out / "timeline.png").is_file()
     tex = mj.load_texture(out / "texture.npz")
-    assert tex.feature_map is not None and tex.feature_map.skeleton == mj.HUMANOID3D
+    assert tex.feature_map is not None and tex.feature_map.skeleton == mj.io.HUMANOID3D
     assert "textons:" in r.stdout and "objective per EM iteration" in r.stdout
     dance = mj.read_bvh(out / "new_dance.bvh")
     assert dance.n_frames == 300 and dance.fps == 30.0
-    assert dance.skeleton.same_structure(mj.HUMANOID3D)
+    assert dance.skeleton.same_structure(mj.io.HUMANOID3D)
     with Image.open(out / "new_dance.gif") as im:
         assert im.n_frames == 300
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-from mtex_jax._deepmimic import FRAME_SIZE
+from mtex_jax.io._deepmimic import FRAME_SIZE
 
 
 def test_examples_load_with_plausible_values():
@@ -17,7 +17,7 @@ def test_examples_load_with_plausible_values():
     assert len(names) == 15 and "dance_a" in names and "walk" in names
     for name in names:
         m = mj.load_example(name)
-        assert m.skeleton == mj.HUMANOID3D
+        assert m.skeleton == mj.io.HUMANOID3D
         assert m.n_frames >= 20 and m.fps in (16.0, 24.0, 30.0, 60.0)
         q = np.asarray(m.rotations)
         np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-12)

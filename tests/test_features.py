@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import mtex_jax as mj
-from mtex_jax._features import raw_features, unwrap_expmaps
+from mtex_jax.motion._features import raw_features, unwrap_expmaps
 
 
 def _rel_err(a: mj.Motion, b: mj.Motion) -> float:
@@ -22,7 +22,7 @@ def _turn_and_shift(m: mj.Motion, angle: float, shift: np.ndarray) -> mj.Motion:
     xyzw = r.as_quat()
     qy = np.concatenate([xyzw[3:], xyzw[:3]])
     rot = np.asarray(m.rotations).copy()
-    rot[:, 0] = np.asarray(mj.quat_mul(qy, rot[:, 0]))
+    rot[:, 0] = np.asarray(mj.motion.quat_mul(qy, rot[:, 0]))
     rp = r.apply(np.asarray(m.root_positions)) + shift
     return mj.Motion(m.skeleton, m.fps, rp, rot)
 
@@ -87,8 +87,8 @@ def test_expmaps_have_no_2pi_jumps_on_a_turning_clip():
     axis /= np.linalg.norm(axis)
     ang = np.linspace(0.0, 6 * np.pi, t)
     v = ang[:, None] * axis
-    q = np.asarray(mj.expmap_to_quat(v))
-    em = np.asarray(unwrap_expmaps(np.asarray(mj.quat_to_expmap(q))))
+    q = np.asarray(mj.motion.expmap_to_quat(v))
+    em = np.asarray(unwrap_expmaps(np.asarray(mj.motion.quat_to_expmap(q))))
     steps = np.linalg.norm(np.diff(em, axis=0), axis=1)
     assert steps.max() < 2 * (ang[1] - ang[0]) + 1e-9
     np.testing.assert_allclose(em, v, atol=1e-9)  # it is the unwound rotation vector itself

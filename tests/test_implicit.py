@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-from mtex_jax._cli import main
-from mtex_jax._implicit import (
+from mtex_jax.cli._main import main
+from mtex_jax.implicit._model import (
     ImplicitModel,
     _encode,
     _sample_exact_traced,

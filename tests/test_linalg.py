@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
-from mtex_jax._linalg import (
+from mtex_jax.texture._linalg import (
     _factor,
     _solve_rows_fused,
     _solve_rows_plain,

@@ -7,11 +7,11 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 import mtex_jax as mj
-from mtex_jax._motion import slerp
+from mtex_jax.motion._motion import slerp
 
 
 def test_motion_validates_shapes():
-    sk = mj.HUMANOID3D
+    sk = mj.io.HUMANOID3D
     j = sk.n_joints
     ok = mj.Motion(sk, 30.0, np.zeros((5, 3)), np.tile([1.0, 0, 0, 0], (5, j, 1)))
     assert ok.n_frames == 5 and abs(ok.duration - 4 / 30) < 1e-15
@@ -33,14 +33,14 @@ def test_slicing_and_concatenation():
     m = mj.load_example("walk")
     a, b = m[:10], m[10:]
     assert a.n_frames == 10 and b.n_frames == m.n_frames - 10
-    c = mj.concatenate_motions([a, b])
+    c = mj.motion.concatenate_motions([a, b])
     np.testing.assert_array_equal(np.asarray(c.rotations), np.asarray(m.rotations))
     half = m[::2]
     assert half.fps == m.fps / 2
     with pytest.raises(TypeError):
         m[3]  # type: ignore[index]
     with pytest.raises(ValueError, match="fps"):
-        mj.concatenate_motions([m, mj.load_example("dance_a")])
+        mj.motion.concatenate_motions([m, mj.load_example("dance_a")])
 
 
 def test_resample_by_slerp_matches_scipy(cmu_motions):
@@ -58,7 +58,7 @@ def test_resample_by_slerp_matches_scipy(cmu_motions):
     for j in [0, 5, 17]:
         rot = Rotation.from_quat(np.concatenate([q[:, j, 1:], q[:, j, :1]], axis=1))
         ref = Slerp(t_old, rot)(t_new).as_matrix()
-        ours = np.asarray(mj.quat_to_matrix(np.asarray(up.rotations)[:, j]))
+        ours = np.asarray(mj.motion.quat_to_matrix(np.asarray(up.rotations)[:, j]))
         np.testing.assert_allclose(ours, ref, atol=1e-10)
     # not angle averaging: halfway between ±170° about one axis is 180°, not 0°
     q0 = np.array([np.cos(np.radians(85)), 0, 0, np.sin(np.radians(85))])

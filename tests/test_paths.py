@@ -34,11 +34,11 @@ def test_shortest_path_equals_scipy_dijkstra(n, sparsity, seed):
         for v in range(n):
             if u != v and not np.isfinite(dist[u, v]):
                 with pytest.raises(ValueError, match="not reachable"):
-                    mj.shortest_path(M, u, v)
+                    mj.texture.shortest_path(M, u, v)
                 continue
-            p = mj.shortest_path(M, u, v)
+            p = mj.texture.shortest_path(M, u, v)
             assert p[0] == u and p[-1] == v and len(set(p.tolist())) == len(p)
-            np.testing.assert_allclose(mj.path_cost(M, p), dist[u, v], rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(mj.texture.path_cost(M, p), dist[u, v], rtol=1e-12, atol=1e-12)
             # same path as scipy's predecessor tree (ties have probability zero here)
             ref = [v]
             while ref[-1] != u:
@@ -51,11 +51,11 @@ def test_shortest_path_self_repeats_follow_the_self_transition_probability():
     M = random_markov(rng, 4)
     M[1, :] = [0.1, 0.6, 0.3, 0.0]
     M[0, :] = [0.2, 0.7, 0.05, 0.05]
-    base = mj.shortest_path(M, 0, 2)
+    base = mj.texture.shortest_path(M, 0, 2)
     assert base.tolist() == [0, 1, 2]
     reps = {0: [], 1: [], 2: []}
     for s in range(3000):
-        p = mj.shortest_path(M, 0, 2, key=jax.random.key(s))
+        p = mj.texture.shortest_path(M, 0, 2, key=jax.random.key(s))
         assert p[0] == 0 and p[-1] == 2
         for lab in reps:
             reps[lab].append(int(np.sum(p == lab)) - 1)
@@ -83,19 +83,19 @@ def test_path_of_length_equals_brute_force(n, L, sparsity, seed):
                 best, arg = s, p
         if not np.isfinite(best):
             with pytest.raises(ValueError):
-                mj.path_of_length(M, u, v, L)
+                mj.texture.path_of_length(M, u, v, L)
             continue
-        p, score = mj.path_of_length(M, u, v, L)
+        p, score = mj.texture.path_of_length(M, u, v, L)
         assert len(p) == L and p[0] == u and p[-1] == v
         np.testing.assert_allclose(score, best, rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(-mj.path_cost(M, p), best, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(-mj.texture.path_cost(M, p), best, rtol=1e-12, atol=1e-12)
         assert arg is not None
 
 
 def test_random_path_transition_frequencies_match_M():
     rng = np.random.default_rng(3)
     M = random_markov(rng, 5)
-    p = mj.random_path(M, jax.random.key(0), 40_000, start=2)
+    p = mj.texture.random_path(jax.random.key(0), M, 40_000, start=2)
     assert p[0] == 2 and p.dtype == np.int64
     counts = np.zeros((5, 5))
     np.add.at(counts, (p[:-1], p[1:]), 1)
@@ -106,28 +106,28 @@ def test_random_path_transition_frequencies_match_M():
     M2 = M.copy()
     M2[:, 4] = 0
     M2 /= M2.sum(axis=1, keepdims=True)
-    p2 = mj.random_path(M2, jax.random.key(1), 2000, start=0)
+    p2 = mj.texture.random_path(jax.random.key(1), M2, 2000, start=0)
     assert not np.any(p2[1:] == 4)
 
 
 def test_path_errors():
     M = np.full((3, 3), 1 / 3)
     with pytest.raises(ValueError, match="not a texton index"):
-        mj.shortest_path(M, 0, 3)
+        mj.texture.shortest_path(M, 0, 3)
     with pytest.raises(ValueError, match="square"):
-        mj.shortest_path(np.ones((2, 3)) / 3, 0, 1)
+        mj.texture.shortest_path(np.ones((2, 3)) / 3, 0, 1)
     with pytest.raises(ValueError, match="sums to"):
-        mj.random_path(np.ones((3, 3)), jax.random.key(0), 4)
+        mj.texture.random_path(jax.random.key(0), np.ones((3, 3)), 4)
     with pytest.raises(ValueError, match="negative or non-finite"):
-        mj.path_of_length(np.array([[np.nan, 1.0], [0.5, 0.5]]), 0, 1, 3)
+        mj.texture.path_of_length(np.array([[np.nan, 1.0], [0.5, 0.5]]), 0, 1, 3)
     with pytest.raises(ValueError, match="L must be"):
-        mj.path_of_length(M, 0, 1, 0)
+        mj.texture.path_of_length(M, 0, 1, 0)
     with pytest.raises(ValueError, match="cannot go"):
-        mj.path_of_length(M, 0, 1, 1)
+        mj.texture.path_of_length(M, 0, 1, 1)
     with pytest.raises(TypeError, match="n_textons"):
-        mj.random_path(M, jax.random.key(0), 2.5)  # type: ignore[arg-type]
+        mj.texture.random_path(jax.random.key(0), M, 2.5)  # type: ignore[arg-type]
     disconnected = np.array([[1.0, 0.0], [0.5, 0.5]])
     with pytest.raises(ValueError, match="not reachable"):
-        mj.shortest_path(disconnected, 0, 1)
+        mj.texture.shortest_path(disconnected, 0, 1)
     with pytest.raises(ValueError, match="no path of exactly"):
-        mj.path_of_length(disconnected, 0, 1, 4)
+        mj.texture.path_of_length(disconnected, 0, 1, 4)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-import mtex_jax._sequence as seq
+import mtex_jax.texture._sequence as seq
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +36,7 @@ def test_every_texton_equals_single_texton_synthesis(texture):
     rng = np.random.default_rng(0)
     path = rng.integers(0, texture.n_textons, 5)
     lengths = rng.integers(12, 40, 5)
-    s = mj.synthesize(texture, None, path=path, lengths=lengths, residual="subspace")
+    s = mj.synthesize(None, texture, path=path, lengths=lengths, residual="subspace")
     Y, st, kp = np.asarray(s.Y), np.asarray(s.starts), np.asarray(texture.key_poses)
     segs = np.asarray(s.key_segments)
     assert Y.shape == (lengths.sum(), texture.obs_dim) and st.tolist() == [
@@ -46,8 +46,8 @@ def test_every_texton_equals_single_texton_synthesis(texture):
     np.testing.assert_array_equal(np.asarray(s.path), path)
     assert np.all(np.asarray(texture.key_pose_labels)[segs] == path)
     for m in range(4):
-        ref = mj.synthesize_texton(
-            texton(texture, path[m]), None, int(lengths[m]) + 2, kp[segs[m]], kp[segs[m + 1]]
+        ref = mj.texture.synthesize_texton(
+            None, texton(texture, path[m]), int(lengths[m]) + 2, kp[segs[m]], kp[segs[m + 1]]
         )
         got = Y[st[m] : st[m] + lengths[m]]
         np.testing.assert_allclose(got, np.asarray(ref)[: lengths[m]], rtol=1e-9, atol=1e-9)
@@ -61,7 +61,7 @@ def test_every_texton_equals_single_texton_synthesis(texture):
 
 def test_blend_holds_exact_key_poses_and_random_paths_fill_n_frames(texture):
     for seed in range(3):
-        s = mj.synthesize(texture, jax.random.key(seed), n_frames=257)
+        s = mj.synthesize(jax.random.key(seed), texture, n_frames=257)
         assert s.n_frames == 257 and int(np.asarray(s.lengths).sum()) == 257
         Y, kp = np.asarray(s.Y), np.asarray(texture.key_poses)
         for m, (b, k) in enumerate(
@@ -258,23 +258,23 @@ def test_outlier_rule_without_feature_map_and_degenerate_jumps(texture):
 
 def test_given_path_with_n_frames_rescales_lengths(texture):
     path = [0, 1, 2]
-    s = mj.synthesize(texture, jax.random.key(1), path=path, n_frames=100)
+    s = mj.synthesize(jax.random.key(1), texture, path=path, n_frames=100)
     assert int(np.asarray(s.lengths).sum()) == 100 and s.n_frames == 100
     with pytest.raises(ValueError, match="sum to"):
-        mj.synthesize(texture, None, path=path, lengths=[10, 10, 10], n_frames=31)
+        mj.synthesize(None, texture, path=path, lengths=[10, 10, 10], n_frames=31)
 
 
 def test_match_texton_is_the_two_frame_segment_likelihood(texture):
     pair = np.asarray(texture.key_poses)[3]
-    best, score = mj.match_texton(texture, pair)
+    best, score = mj.texture.match_texton(texture, pair)
     ref = [
-        float(mj.segment_log_likelihood(texton(texture, i), jnp.asarray(pair)))
+        float(mj.texture.segment_log_likelihood(texton(texture, i), jnp.asarray(pair)))
         for i in range(texture.n_textons)
     ]
     np.testing.assert_allclose(score, ref, rtol=1e-9, atol=1e-9)
     assert best == int(np.argmax(ref))
-    _, end_score = mj.match_texton(texture, pair, role="end")
-    _, obs = mj.frame_terms(texture.textons, jnp.asarray(pair))
+    _, end_score = mj.texture.match_texton(texture, pair, role="end")
+    _, obs = mj.texture.frame_terms(texture.textons, jnp.asarray(pair))
     np.testing.assert_allclose(end_score, np.asarray(obs).sum(axis=1), rtol=1e-12)
 
 
@@ -286,12 +286,12 @@ def test_choreograph_starts_and_ends_at_the_given_poses(texture, n_frames):
     start = np.asarray(fm.encode(walk))[5:7]
     end = np.asarray(fm.encode(dance))[20:22]
     for residual in ("blend", "subspace"):
-        s = mj.choreograph(texture, jax.random.key(0), start, end, n_frames, residual=residual)
+        s = mj.choreograph(jax.random.key(0), texture, start, end, n_frames, residual=residual)
         Y, path = np.asarray(s.Y), np.asarray(s.path)
         if n_frames is not None:
             assert s.n_frames == n_frames
-        assert path[0] == mj.match_texton(texture, start)[0]
-        assert path[-1] == mj.match_texton(texture, end, role="end")[0]
+        assert path[0] == mj.texture.match_texton(texture, start)[0]
+        assert path[-1] == mj.texture.match_texton(texture, end, role="end")[0]
         if residual == "blend":
             np.testing.assert_allclose(Y[:2], start, atol=1e-9)
             np.testing.assert_allclose(Y[-2:], end, atol=1e-9)
@@ -304,14 +304,14 @@ def test_same_sizes_do_not_recompile(texture, monkeypatch):
     counted = eqx.filter_jit(eqx.debug.assert_max_traces(seq._path_core, max_traces=1))
     monkeypatch.setattr(seq, "_path_core_jit", counted)
     for seed in range(3):  # different paths, same padded sizes
-        mj.synthesize(texture, jax.random.key(seed), path=[0, 1, 2], lengths=[20, 21, 22])
+        mj.synthesize(jax.random.key(seed), texture, path=[0, 1, 2], lengths=[20, 21, 22])
 
 
 def test_float32_texture_synthesises_in_float32(texture):
     t32 = jax.tree.map(
         lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, texture
     )
-    s = mj.synthesize(t32, jax.random.key(0), n_frames=60, decode=False)
+    s = mj.synthesize(jax.random.key(0), t32, n_frames=60, decode=False)
     assert s.Y.dtype == jnp.float32 and np.isfinite(np.asarray(s.Y)).all() and s.motion is None
 
 
@@ -319,26 +319,26 @@ def test_errors(texture):
     D = texture.obs_dim
     key = jax.random.key(0)
     with pytest.raises(ValueError, match="give a path or n_frames"):
-        mj.synthesize(texture, key)
+        mj.synthesize(key, texture)
     with pytest.raises(ValueError, match="needs a key"):
-        mj.synthesize(texture, None, n_frames=50)
+        mj.synthesize(None, texture, n_frames=50)
     with pytest.raises(ValueError, match="labels outside"):
-        mj.synthesize(texture, key, path=[0, texture.n_textons])
+        mj.synthesize(key, texture, path=[0, texture.n_textons])
     with pytest.raises(ValueError, match="lengths must be"):
-        mj.synthesize(texture, key, path=[0, 1], lengths=[10])
+        mj.synthesize(key, texture, path=[0, 1], lengths=[10])
     with pytest.raises(ValueError, match=">= 2 frames"):
-        mj.synthesize(texture, key, path=[0, 1], lengths=[10, 1])
+        mj.synthesize(key, texture, path=[0, 1], lengths=[10, 1])
     with pytest.raises(ValueError, match="n_frames must be >= 4"):
-        mj.synthesize(texture, key, n_frames=3)
+        mj.synthesize(key, texture, n_frames=3)
     with pytest.raises(ValueError, match=r"shape \(2, "):
-        mj.synthesize(texture, key, n_frames=50, start=np.zeros((3, D)))
+        mj.synthesize(key, texture, n_frames=50, start=np.zeros((3, D)))
     with pytest.raises(ValueError, match="NaN"):
-        mj.choreograph(texture, key, np.full((2, D), np.nan), np.zeros((2, D)))
+        mj.choreograph(key, texture, np.full((2, D), np.nan), np.zeros((2, D)))
     with pytest.raises(ValueError, match="weighting"):
-        mj.synthesize(texture, key, n_frames=50, weighting="dense")  # type: ignore[arg-type]
+        mj.synthesize(key, texture, n_frames=50, weighting="dense")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="residual"):
-        mj.synthesize(texture, key, n_frames=50, residual="none")  # type: ignore[arg-type]
+        mj.synthesize(key, texture, n_frames=50, residual="none")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="too few"):
-        mj.choreograph(texture, key, np.zeros((2, D)), np.ones((2, D)), n_frames=5)
+        mj.choreograph(key, texture, np.zeros((2, D)), np.ones((2, D)), n_frames=5)
     with pytest.raises(TypeError, match="MotionTexture"):
-        mj.synthesize(texture.M, key, n_frames=50)
+        mj.synthesize(key, texture.M, n_frames=50)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-import mtex_jax._sequence as seq
+import mtex_jax.texture._sequence as seq
 
 FPS = 60.0
 
@@ -46,9 +46,9 @@ def test_fig8_boundaries_smooth_independent_neighbours_jump(salsa):
     fm = tex.feature_map
     rows, above, inside = [], [], np.zeros(2, np.int64)
     for seed in range(8):
-        s = mj.synthesize(tex, jax.random.key(seed), n_frames=int(25 * FPS))
+        s = mj.synthesize(jax.random.key(seed), tex, n_frames=int(25 * FPS))
         b = s.boundaries() - 1  # jump from the last frame of a texton to the next one's first
-        mean = mj.synthesize(tex, None, path=s.path, lengths=s.lengths)
+        mean = mj.synthesize(None, tex, path=s.path, lengths=s.lengths)
         j, jm = max_joint_jump(s.motion), max_joint_jump(mean.motion)
         interior = np.ones(j.size, bool)
         interior[b] = False
@@ -56,9 +56,9 @@ def test_fig8_boundaries_smooth_independent_neighbours_jump(salsa):
         # the same textons, lengths and key poses, each synthesised on its own (noise-driven)
         keys = jax.random.split(jax.random.key(100 + seed), len(s.path))
         parts = [
-            mj.synthesize_texton(
-                jax.tree.map(lambda a, i=int(lab): a[i], tex.textons),
+            mj.texture.synthesize_texton(
                 keys[m],
+                jax.tree.map(lambda a, i=int(lab): a[i], tex.textons),
                 int(n),
                 kp[int(k)],
             )

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from jax.test_util import check_grads
 from scipy import stats
 
-from mtex_jax._synthesis import (
+from mtex_jax.texture._synthesis import (
     _bridge_usable,
     _equations,
     _sincos_turn,
@@ -23,7 +23,7 @@ from mtex_jax._synthesis import (
     _standard_normal,
     synthesize_texton,
 )
-from mtex_jax._texton import Texton, fit_texton, spectral_radius
+from mtex_jax.texture._texton import Texton, fit_texton, spectral_radius
 
 
 def make_texton(seed: int, D: int, k: int) -> Texton:
@@ -133,7 +133,7 @@ def test_matches_dense_lstsq_and_constraints_exact(weighting, length, k, n_edit,
     x_held = np.where(held[:, None], xs, 0.0)
     for key in (None, jax.random.key(seed)):
         out = np.asarray(
-            synthesize_texton(tex, key, length, ys[:2], ys[-2:], (mask, ys), weighting=weighting)
+            synthesize_texton(key, tex, length, ys[:2], ys[-2:], (mask, ys), weighting=weighting)
         )
         assert out.shape == (length, 7)
         # perturb-and-MAP: least squares of the equations with the noise v of the key
@@ -152,7 +152,7 @@ def test_noise_driven_matches_recursion_and_open_end():
     rng = np.random.default_rng(0)
     _, ys, _ = random_states_case(tex, length, rng, 0)
     key = jax.random.key(3)
-    out = np.asarray(synthesize_texton(tex, key, length, ys[:2]))
+    out = np.asarray(synthesize_texton(key, tex, length, ys[:2]))
     v = noise(key, length, 3)
     x = list((ys[:2] - t["mu"]) @ t["C"])
     for j in range(2, length):
@@ -160,12 +160,12 @@ def test_noise_driven_matches_recursion_and_open_end():
     np.testing.assert_allclose(out, t["mu"] + np.array(x) @ t["C"].T, rtol=1e-10, atol=1e-10)
     # open end through the least-squares path (empty edit mask) is the same sample
     none = (np.zeros(length, bool), np.zeros((length, 6)))
-    out2 = np.asarray(synthesize_texton(tex, key, length, ys[:2], fixed=none))
+    out2 = np.asarray(synthesize_texton(key, tex, length, ys[:2], fixed=none))
     np.testing.assert_allclose(out2, out, rtol=1e-9, atol=1e-9)
     # ... and an edited frame in the middle is held while the tail still follows the dynamics
     mask = np.zeros(length, bool)
     mask[6] = True
-    out3 = np.asarray(synthesize_texton(tex, key, length, ys[:2], fixed=(mask, ys)))
+    out3 = np.asarray(synthesize_texton(key, tex, length, ys[:2], fixed=(mask, ys)))
     np.testing.assert_allclose(out3[6], ys[6], atol=1e-9)
     x3 = (out3 - t["mu"]) @ t["C"]
     for j in range(9, length):  # frames whose equations involve no held/solved coupling
@@ -227,7 +227,7 @@ def test_open_end_with_edits_exact_for_unstable_texton(weighting):
     held[:2] = True
     x_held = np.where(held[:, None], xs, 0.0)
     for key in (None, jax.random.key(8)):
-        out = synthesize_texton(tex, key, length, ys[:2], fixed=(mask, ys), weighting=weighting)
+        out = synthesize_texton(key, tex, length, ys[:2], fixed=(mask, ys), weighting=weighting)
         x = (np.asarray(out) - t["mu"]) @ t["C"]
         v = np.zeros((length - 2, 3))
         if key is not None:
@@ -269,7 +269,7 @@ def test_statistics_match_exact_conditional(edit):
     x_held = np.where(held[:, None], xs, 0.0)
     keys = jax.random.split(jax.random.key(2024), N)
     sample = jax.jit(
-        jax.vmap(lambda key: synthesize_texton(tex, key, length, ys[:2], ys[-2:], (mask, ys)))
+        jax.vmap(lambda key: synthesize_texton(key, tex, length, ys[:2], ys[-2:], (mask, ys)))
     )
     out = np.asarray(sample(keys))
     t = as_np(tex)
@@ -284,14 +284,14 @@ def test_statistics_match_exact_conditional(edit):
     tol = 6 * np.sqrt(2 / N)
     assert np.abs(Sw - np.eye(p)).max() < tol, np.abs(Sw - np.eye(p)).max()
     # zero noise gives the conditional mean exactly
-    mean = synthesize_texton(tex, None, length, ys[:2], ys[-2:], (mask, ys))
+    mean = synthesize_texton(None, tex, length, ys[:2], ys[-2:], (mask, ys))
     xm = ((np.asarray(mean) - t["mu"]) @ t["C"])[~held].reshape(-1)
     np.testing.assert_allclose(xm, m, rtol=1e-9, atol=1e-9)
     # the unweighted (paper) variant is not the exact conditional law for non-isotropic B
     outp = np.asarray(
         jax.vmap(
             lambda key: synthesize_texton(
-                tex, key, length, ys[:2], ys[-2:], (mask, ys), weighting="paper"
+                key, tex, length, ys[:2], ys[-2:], (mask, ys), weighting="paper"
             )
         )(keys)
     )
@@ -308,13 +308,13 @@ def test_edits_do_not_recompile(caplog):
     m1[5] = True
     m2 = np.zeros(length, bool)
     m2[[7, 9, 13]] = True
-    synthesize_texton(tex, None, length, ys[:2], ys[-2:], (m1, ys))
+    synthesize_texton(None, tex, length, ys[:2], ys[-2:], (m1, ys))
     with jax.log_compiles(), caplog.at_level(logging.DEBUG):
-        out = np.asarray(synthesize_texton(tex, None, length, ys[:2], ys[-2:], (m2, ys + 1.0)))
+        out = np.asarray(synthesize_texton(None, tex, length, ys[:2], ys[-2:], (m2, ys + 1.0)))
     assert not [r for r in caplog.records if "_constrained" in r.getMessage()]
     # positive control: the log does show a compilation for a new static length
     with jax.log_compiles(), caplog.at_level(logging.DEBUG):
-        synthesize_texton(tex, None, length - 1, ys[:2], ys[-2:], (m2[:-1], ys[:-1]))
+        synthesize_texton(None, tex, length - 1, ys[:2], ys[-2:], (m2[:-1], ys[:-1]))
     assert [r for r in caplog.records if "_constrained" in r.getMessage()]
     t = as_np(tex)
     np.testing.assert_allclose(
@@ -330,7 +330,7 @@ def test_fitted_texton_extrapolates_and_is_differentiable():
     Y = Y + 0.01 * rng.standard_normal(Y.shape)
     tex = fit_texton(Y, state_dim=3)
     for length in (4, 60):  # shorter and longer than a typical segment: MT Fig. 10
-        out = np.asarray(synthesize_texton(tex, jax.random.key(0), length, Y[:2], Y[50:52]))
+        out = np.asarray(synthesize_texton(jax.random.key(0), tex, length, Y[:2], Y[50:52]))
         assert out.shape == (length, 8) and np.isfinite(out).all()
         np.testing.assert_allclose(out[-2:], Y[50:52], atol=0.05)  # end poses near the subspace
 
@@ -341,12 +341,12 @@ def test_differentiable_in_key_poses_and_dynamics():
     length = 10
     s0, e0 = jnp.asarray(np.arange(8.0).reshape(2, 4) / 8), jnp.ones((2, 4))
     for key in (None, jax.random.key(4)):
-        f = jax.jit(lambda s, e, key=key: synthesize_texton(small, key, length, s, e))
+        f = jax.jit(lambda s, e, key=key: synthesize_texton(key, small, length, s, e))
         check_grads(f, (s0, e0), order=1, modes=("fwd", "rev"))
 
         def g(A1, B, key=key):
             tex = eqx.tree_at(lambda t: (t.A1, t.B), small, (A1, B))
-            return synthesize_texton(tex, key, length, s0, e0)
+            return synthesize_texton(key, tex, length, s0, e0)
 
         check_grads(jax.jit(g), (small.A1, small.B), order=1, modes=("fwd", "rev"))
 
@@ -355,15 +355,15 @@ def test_input_errors():
     tex = make_texton(0, D=5, k=2)
     y2 = np.zeros((2, 5))
     with pytest.raises(ValueError, match="length must be >= 4"):
-        synthesize_texton(tex, None, 3, y2, y2)
+        synthesize_texton(None, tex, 3, y2, y2)
     with pytest.raises(ValueError, match="start must have shape"):
-        synthesize_texton(tex, None, 8, np.zeros((3, 5)), y2)
+        synthesize_texton(None, tex, 8, np.zeros((3, 5)), y2)
     with pytest.raises(ValueError, match="end contains NaN"):
-        synthesize_texton(tex, None, 8, y2, np.full((2, 5), np.nan))
+        synthesize_texton(None, tex, 8, y2, np.full((2, 5), np.nan))
     with pytest.raises(ValueError, match="weighting"):
-        synthesize_texton(tex, None, 8, y2, y2, weighting="lsq")  # pyright: ignore[reportArgumentType]
+        synthesize_texton(None, tex, 8, y2, y2, weighting="lsq")  # pyright: ignore[reportArgumentType]
     with pytest.raises(ValueError, match="fixed mask"):
-        synthesize_texton(tex, None, 8, y2, y2, (np.zeros(7, bool), np.zeros((8, 5))))
+        synthesize_texton(None, tex, 8, y2, y2, (np.zeros(7, bool), np.zeros((8, 5))))
 
 
 @pytest.mark.parametrize("edit", [False, True])
@@ -383,7 +383,7 @@ def test_vmap_over_keys_equals_single_calls_and_factorises_once(weighting, edit)
     keys = jax.random.split(jax.random.key(5), 4)
 
     def one(key, s):
-        return synthesize_texton(tex, key, length, s, ys[-2:], (mask, ys), weighting=weighting)
+        return synthesize_texton(key, tex, length, s, ys[-2:], (mask, ys), weighting=weighting)
 
     batched = jax.jit(jax.vmap(one, in_axes=(0, None)))
     out = np.asarray(batched(keys, ys[:2]))
@@ -439,9 +439,9 @@ def test_constrained_to_its_own_noise_driven_end_is_the_noise_driven_motion(weig
     rng = np.random.default_rng(2)
     _, ys, _ = random_states_case(tex, length, rng, 0)
     key = jax.random.key(11)
-    free = np.asarray(synthesize_texton(tex, key, length, ys[:2]))
+    free = np.asarray(synthesize_texton(key, tex, length, ys[:2]))
     bridged = np.asarray(
-        synthesize_texton(tex, key, length, ys[:2], free[-2:], weighting=weighting)
+        synthesize_texton(key, tex, length, ys[:2], free[-2:], weighting=weighting)
     )
     np.testing.assert_allclose(bridged, free, rtol=0, atol=1e-9 * np.abs(free).max())
 
@@ -462,7 +462,7 @@ def test_bridge_at_paper_scale_equals_banded_solve_and_dense(rho):
         xs, ys, _ = random_states_case(tex, length, rng, 0)
         key = jax.random.key(length)
         v = noise(key, length, k)
-        out = np.asarray(synthesize_texton(tex, key, length, ys[:2], ys[-2:]))
+        out = np.asarray(synthesize_texton(key, tex, length, ys[:2], ys[-2:]))
         x = (out - t["mu"]) @ t["C"]
         w = jnp.asarray(v) @ tex.B.T
         assert bool(_bridge_usable(tex.A1, tex.A2, length - 4)) == (rho < 1), (rho, length)
@@ -490,7 +490,7 @@ def test_bridge_under_vmap_over_poses_textons_and_keys():
     S = jnp.asarray(rng.standard_normal((5, 2, 8)))
     E = jnp.asarray(rng.standard_normal((5, 2, 8)))
     keys = jax.random.split(jax.random.key(3), 5)
-    one = lambda t, key, s, e: synthesize_texton(t, key, length, s, e)
+    one = lambda t, key, s, e: synthesize_texton(key, t, length, s, e)
     single = np.stack([np.asarray(one(tex, keys[i], S[i], E[i])) for i in range(5)])
     both = jax.jit(jax.vmap(one, in_axes=(None, 0, 0, 0)))(tex, keys, S, E)
     np.testing.assert_allclose(np.asarray(both), single, rtol=1e-10, atol=1e-10)
@@ -524,7 +524,7 @@ def test_amplifying_texton_gradients_stay_finite():
 
     def f(A1):
         t = eqx.tree_at(lambda q: q.A1, tex, A1)
-        return jnp.sum(synthesize_texton(t, jax.random.key(0), length, s0, e0)[length // 2])
+        return jnp.sum(synthesize_texton(jax.random.key(0), t, length, s0, e0)[length // 2])
 
     g = jax.jit(jax.grad(f))(tex.A1)
     assert np.isfinite(np.asarray(g)).all()
@@ -535,12 +535,12 @@ def test_bridge_float32_smoke():
     rng = np.random.default_rng(4)
     s0 = rng.standard_normal((2, 6)).astype(np.float32)
     e0 = rng.standard_normal((2, 6)).astype(np.float32)
-    out = synthesize_texton(tex32, jax.random.key(1), 30, s0, e0)
+    out = synthesize_texton(jax.random.key(1), tex32, 30, s0, e0)
     assert out.dtype == jnp.float32 and np.isfinite(np.asarray(out)).all()
     assert bool(_bridge_usable(tex32.A1, tex32.A2, 26))  # the bridge, not the fallback
     # the conditional mean against float64 (the noise draws differ between dtypes)
-    mean = np.asarray(synthesize_texton(tex32, None, 30, s0, e0))
-    mean64 = np.asarray(synthesize_texton(make_texton(42, D=6, k=3), None, 30, s0, e0))
+    mean = np.asarray(synthesize_texton(None, tex32, 30, s0, e0))
+    mean64 = np.asarray(synthesize_texton(None, make_texton(42, D=6, k=3), 30, s0, e0))
     err = np.abs(mean - mean64).max() / np.abs(mean64).max()
     assert err < 1e-4, err
 
@@ -554,7 +554,7 @@ def test_non_finite_texton_raises_not_nan(fixed_edit):
     y2 = np.zeros((2, 5))
     fixed = (np.arange(12) == 5, np.zeros((12, 5))) if fixed_edit else None
     with pytest.raises(Exception, match="non-finite"):
-        jax.block_until_ready(synthesize_texton(bad, jax.random.key(0), 12, y2, y2, fixed))
+        jax.block_until_ready(synthesize_texton(jax.random.key(0), bad, 12, y2, y2, fixed))
 
 
 @settings(deadline=None, max_examples=15)
@@ -577,9 +577,9 @@ def test_random_sizes_match_dense_lstsq(k, length, n_edit, paper, seed):
     held[:2] = held[-2:] = True
     key = jax.random.key(seed)
     out = np.asarray(
-        synthesize_texton(tex, key, length, ys[:2], ys[-2:], (mask, ys), weighting=weighting)
+        synthesize_texton(key, tex, length, ys[:2], ys[-2:], (mask, ys), weighting=weighting)
         if n_edit
-        else synthesize_texton(tex, key, length, ys[:2], ys[-2:], weighting=weighting)
+        else synthesize_texton(key, tex, length, ys[:2], ys[-2:], weighting=weighting)
     )
     t = as_np(tex)
     x = (out - t["mu"]) @ t["C"]

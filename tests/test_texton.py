@@ -19,13 +19,13 @@ import scipy.stats  # noqa: E402
 from jax.test_util import check_grads  # noqa: E402
 from scipy.optimize import linear_sum_assignment  # noqa: E402
 
-from mtex_jax import _texton  # noqa: E402
-from mtex_jax._lds_refine import (  # noqa: E402
+from mtex_jax.texture import _texton as _texton  # noqa: E402
+from mtex_jax.texture._lds_refine import (  # noqa: E402
     RefineReport,
     exact_log_likelihood_segments,
     refine_texton,
 )
-from mtex_jax._texton import (  # noqa: E402
+from mtex_jax.texture._texton import (  # noqa: E402
     DynamicsStats,
     FrameStats,
     SegmentScorer,
@@ -929,7 +929,7 @@ def test_sample_texton_round_trip():
         S0=jnp.eye(2 * k),
     )
     x1, x2 = jnp.ones(k), -jnp.ones(k)
-    states, obs = sample_texton(true, jax.random.key(0), 20000, x1, x2)
+    states, obs = sample_texton(jax.random.key(0), true, 20000, x1, x2)
     assert states.shape == (20000, k) and obs.shape == (20000, D)
     np.testing.assert_array_equal(states[0], x1)
     np.testing.assert_array_equal(states[1], x2)
@@ -943,18 +943,18 @@ def test_sample_texton_round_trip():
     err = recovery_errors(fit_texton(obs, state_dim=k), system)
     assert err["A"] < 0.05 and err["Q"] < 0.1 and err["subspace"] < 0.01, err
     # noise-free observations lie exactly on μ + C x
-    _, clean = sample_texton(true, jax.random.key(1), 30, x1, x2, observation_noise=False)
-    s_clean, _ = sample_texton(true, jax.random.key(1), 30, x1, x2, observation_noise=False)
+    _, clean = sample_texton(jax.random.key(1), true, 30, x1, x2, observation_noise=False)
+    s_clean, _ = sample_texton(jax.random.key(1), true, 30, x1, x2, observation_noise=False)
     np.testing.assert_allclose(clean, system["mu"] + np.asarray(s_clean) @ system["C"].T)
     # initial states drawn from (m0, S0) when not given
-    s_rand, _ = sample_texton(true, jax.random.key(2), 5)
+    s_rand, _ = sample_texton(jax.random.key(2), true, 5)
     assert s_rand.shape == (5, k) and np.all(np.isfinite(np.asarray(s_rand)))
     with pytest.raises(ValueError, match="length"):
-        sample_texton(true, jax.random.key(0), 1, x1, x2)
+        sample_texton(jax.random.key(0), true, 1, x1, x2)
     with pytest.raises(ValueError, match="x1"):
-        sample_texton(true, jax.random.key(0), 5, jnp.ones(k + 1), x2)
+        sample_texton(jax.random.key(0), true, 5, jnp.ones(k + 1), x2)
     with pytest.raises(ValueError, match="both"):
-        sample_texton(true, jax.random.key(0), 5, x1)
+        sample_texton(jax.random.key(0), true, 5, x1)
 
 
 # --------------------------------------------------------------------------------------------

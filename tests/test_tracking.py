@@ -7,10 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mtex_jax._cli import main
-from mtex_jax._implicit import ImplicitModel
-from mtex_jax._kinematics import forward_kinematics_arrays
-from mtex_jax._tracking import (
+from mtex_jax.cli._main import main
+from mtex_jax.implicit._model import ImplicitModel
+from mtex_jax.motion._kinematics import forward_kinematics_arrays
+from mtex_jax.implicit._tracking import (
     Camera,
     Prior,
     _systematic,

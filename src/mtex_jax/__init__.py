@@ -1,53 +1,41 @@
 """mtex_jax: Motion Texture (Li, Wang & Shum 2002) and implicit probabilistic motion models
 (Sidenbladh, Black & Sigal 2002) in JAX.
 
-Layout, top-down: data and features (``Motion``, readers/writers, ``forward_kinematics``,
-``FeatureMap``) → textons → learning → synthesis → implicit model → command line (``mtex``).
+The top level holds what a user reaches for first. Everything else lives in one subpackage per
+concern, each with its own API:
+
+- :mod:`mtex_jax.motion`: ``Motion``, ``Skeleton``, rotations, forward kinematics, ``FeatureMap``;
+- :mod:`mtex_jax.io`: BVH, DeepMimic, the embedded clips, the model-file format;
+- :mod:`mtex_jax.texture`: Motion Texture (textons, learning, segmentation, synthesis);
+- :mod:`mtex_jax.implicit`: the implicit model and the particle-filter tracker;
+- :mod:`mtex_jax.viz`: rendering and plots;
+- :mod:`mtex_jax.cli`: the ``mtex`` command.
 """
 
 from importlib.metadata import PackageNotFoundError, version
 
-from ._bvh import read_bvh, write_bvh
-from ._data import example_names, load_example
-from ._deepmimic import HUMANOID3D, read_deepmimic
-from ._features import FeatureMap, load_feature_map
-from ._implicit import ImplicitModel
-from ._kinematics import forward_kinematics, forward_kinematics_arrays
-from ._lds_refine import RefineReport, exact_log_likelihood_segments, refine_texton
-from ._learn import LearnConfig, MotionTexture, bic_select, learn, load_texture
-from ._linalg import block_banded_solve
-from ._motion import Motion, concatenate_motions
-from ._paths import path_cost, path_of_length, random_path, shortest_path
-from ._plots import plot_timeline
-from ._readers import read_motion
-from ._render import render_filmstrip, render_gif
-from ._rotation import expmap_to_quat, quat_mul, quat_to_expmap, quat_to_matrix
-from ._segment import Segmentation, segment
-from ._sequence import Synthesis, choreograph, match_texton, synthesize
-from ._skeleton import Skeleton
-from ._synthesis import synthesize_texton
-from ._texton import (
-    DynamicsStats,
-    FrameStats,
-    SegmentScorer,
-    Subspace,
-    Texton,
-    companion_matrix,
-    dynamics_stats,
-    exact_log_likelihood,
-    fit_texton,
-    frame_stats,
-    frame_terms,
-    init_terms,
-    sample_texton,
-    segment_log_likelihood,
-    segment_scores,
-    spectral_radius,
-    stack_textons,
-    subspace_from_stats,
-    texton_from_stats,
-)
-from ._tracking import Camera, TrackingProblem, TrackResult, make_problem, track
+from .implicit import ImplicitModel as ImplicitModel
+from .implicit import track as track
+from .io import example_names as example_names
+from .io import load_example as load_example
+from .io import read_bvh as read_bvh
+from .io import read_deepmimic as read_deepmimic
+from .io import read_motion as read_motion
+from .io import write_bvh as write_bvh
+from .motion import FeatureMap as FeatureMap
+from .motion import Motion as Motion
+from .motion import Skeleton as Skeleton
+from .motion import forward_kinematics as forward_kinematics
+from .motion import load_feature_map as load_feature_map
+from .texture import LearnConfig as LearnConfig
+from .texture import MotionTexture as MotionTexture
+from .texture import choreograph as choreograph
+from .texture import learn as learn
+from .texture import load_texture as load_texture
+from .texture import synthesize as synthesize
+from .viz import plot_timeline as plot_timeline
+from .viz import render_filmstrip as render_filmstrip
+from .viz import render_gif as render_gif
 
 try:
     __version__ = version("mtex_jax")
@@ -55,71 +43,27 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0+unknown"
 
 __all__ = [
-    "HUMANOID3D",
-    "Camera",
-    "DynamicsStats",
     "FeatureMap",
-    "FrameStats",
     "ImplicitModel",
     "LearnConfig",
     "Motion",
     "MotionTexture",
-    "RefineReport",
-    "SegmentScorer",
-    "Segmentation",
     "Skeleton",
-    "Subspace",
-    "Synthesis",
-    "Texton",
-    "TrackResult",
-    "TrackingProblem",
     "__version__",
-    "bic_select",
-    "block_banded_solve",
     "choreograph",
-    "companion_matrix",
-    "concatenate_motions",
-    "dynamics_stats",
-    "exact_log_likelihood",
-    "exact_log_likelihood_segments",
     "example_names",
-    "expmap_to_quat",
-    "fit_texton",
     "forward_kinematics",
-    "forward_kinematics_arrays",
-    "frame_stats",
-    "frame_terms",
-    "init_terms",
     "learn",
     "load_example",
     "load_feature_map",
     "load_texture",
-    "make_problem",
-    "match_texton",
-    "path_cost",
-    "path_of_length",
     "plot_timeline",
-    "quat_mul",
-    "quat_to_expmap",
-    "quat_to_matrix",
-    "random_path",
     "read_bvh",
     "read_deepmimic",
     "read_motion",
-    "refine_texton",
     "render_filmstrip",
     "render_gif",
-    "sample_texton",
-    "segment",
-    "segment_log_likelihood",
-    "segment_scores",
-    "shortest_path",
-    "spectral_radius",
-    "stack_textons",
-    "subspace_from_stats",
     "synthesize",
-    "synthesize_texton",
-    "texton_from_stats",
     "track",
     "write_bvh",
 ]

@@ -47,11 +47,11 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
-from ._features import FeatureMap
-from ._implicit import ImplicitModel, tree_sample_indices, velocity_channels
-from ._kinematics import forward_kinematics, forward_kinematics_arrays
-from ._motion import Motion
-from ._rotation import expmap_to_quat, quat_mul, quat_rotate, quat_twist, yaw_quat
+from ..motion import FeatureMap
+from ._model import ImplicitModel, tree_sample_indices, velocity_channels
+from ..motion import forward_kinematics, forward_kinematics_arrays
+from ..motion import Motion
+from ..motion import expmap_to_quat, quat_mul, quat_rotate, quat_twist, yaw_quat
 
 __all__ = [
     "Camera",

@@ -8,7 +8,7 @@ from pathlib import Path
 from ._bvh import read_bvh
 from ._data import load_example
 from ._deepmimic import read_deepmimic
-from ._motion import Motion
+from ..motion import Motion
 
 __all__ = ["read_motion"]
 

@@ -93,7 +93,7 @@ _walk_jit = jax.jit(_walk, static_argnums=3)
 
 
 def random_path(
-    texture: Any, key: Array, n_textons: int, *, start: int | None = None
+    key: Array, texture: Any, n_textons: int, *, start: int | None = None
 ) -> np.ndarray:
     """A random walk of ``n_textons`` labels on the transition matrix (MT §5.2).
 

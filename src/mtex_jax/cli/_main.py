@@ -24,7 +24,7 @@ class _UserError(Exception):
 
 
 def _read(source: str):
-    from ._readers import read_motion
+    from ..io import read_motion
 
     return read_motion(source)
 
@@ -53,7 +53,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from ._render import render_filmstrip, render_gif
+    from ..viz import render_filmstrip, render_gif
 
     m = _read(args.file)
     out = Path(args.output)
@@ -68,7 +68,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_examples(args: argparse.Namespace) -> int:
-    from ._data import example_names, load_example
+    from ..io import example_names, load_example
 
     for name in example_names():
         m = load_example(name)
@@ -85,7 +85,7 @@ def _frames(seconds: float | None, fps: float, name: str) -> int | None:
 
 
 def _cmd_learn(args: argparse.Namespace) -> int:
-    from ._learn import LearnConfig, learn, texture_summary
+    from ..texture import LearnConfig, learn, texture_summary
 
     t0 = time.perf_counter()
     motions = [_read(c) for c in args.clips]
@@ -118,8 +118,8 @@ def _cmd_learn(args: argparse.Namespace) -> int:
 
 
 def _cmd_segment(args: argparse.Namespace) -> int:
-    from ._learn import load_texture
-    from ._plots import plot_timeline
+    from ..texture import load_texture
+    from ..viz import plot_timeline
 
     tex = load_texture(args.model)
     if tex.feature_map is None:
@@ -156,12 +156,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     """The main job on the embedded default data: learn a texture, synthesise a new dance."""
     import jax
 
-    from ._bvh import write_bvh
-    from ._data import example_names, load_example
-    from ._learn import LearnConfig, learn, texture_summary
-    from ._plots import plot_timeline
-    from ._render import render_gif
-    from ._sequence import synthesize
+    from ..io import write_bvh
+    from ..io import example_names, load_example
+    from ..texture import LearnConfig, learn, texture_summary
+    from ..viz import plot_timeline
+    from ..viz import render_gif
+    from ..texture import synthesize
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -194,7 +194,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     )
     n_frames = max(4, round(args.seconds * fps))
     print(f"synthesising a new dance: {n_frames} frames ({n_frames / fps:.1f} s), seed {args.seed}")
-    new = synthesize(tex, jax.random.key(args.seed), n_frames=n_frames)
+    new = synthesize(jax.random.key(args.seed), tex, n_frames=n_frames)
     assert new.motion is not None
     write_bvh(out / "new_dance.bvh", new.motion)
     print(
@@ -216,7 +216,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _load_model(path: str):
-    from ._learn import load_texture
+    from ..texture import load_texture
 
     tex = load_texture(path)
     if tex.feature_map is None:
@@ -225,7 +225,7 @@ def _load_model(path: str):
 
 
 def _write_outputs(syn, out: str, gif: str | None, title: str) -> None:
-    from ._bvh import write_bvh
+    from ..io import write_bvh
 
     if not str(out).lower().endswith(".bvh"):
         raise ValueError(f"-o/--output must be a .bvh file, got {out!r}")
@@ -238,7 +238,7 @@ def _write_outputs(syn, out: str, gif: str | None, title: str) -> None:
         f"wrote {out} ({syn.n_frames} frames, {syn.n_frames / fps:.2f} s at {fps:g} Hz)"
     )
     if gif:
-        from ._render import render_gif
+        from ..viz import render_gif
 
         render_gif(syn.motion, gif, title=title)
         print(f"wrote {gif}")
@@ -247,7 +247,7 @@ def _write_outputs(syn, out: str, gif: str | None, title: str) -> None:
 def _cmd_synth(args: argparse.Namespace) -> int:
     import jax
 
-    from ._sequence import synthesize
+    from ..texture import synthesize
 
     tex = _load_model(args.model)
     assert tex.feature_map is not None  # checked by _load_model
@@ -256,7 +256,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     if n < 4:
         raise ValueError(f"--frames must be >= 4, got {n}")
     t0 = time.perf_counter()
-    syn = synthesize(tex, jax.random.key(args.seed), n_frames=n)
+    syn = synthesize(jax.random.key(args.seed), tex, n_frames=n)
     print(
         f"synthesised {n} frames from {tex.n_textons} textons in {time.perf_counter() - t0:.1f} s"
     )
@@ -290,15 +290,15 @@ def _clip_frame(spec: str, tex) -> tuple[np.ndarray, np.ndarray, float]:
 def _cmd_choreograph(args: argparse.Namespace) -> int:
     import jax
 
-    from ._sequence import choreograph
+    from ..texture import choreograph
 
     tex = _load_model(args.model)
     start, pos, heading = _clip_frame(args.start, tex)
     end, _, _ = _clip_frame(args.end, tex)
     t0 = time.perf_counter()
     syn = choreograph(
-        tex,
         jax.random.key(args.seed),
+        tex,
         start,
         end,
         n_frames=args.frames,
@@ -311,7 +311,7 @@ def _cmd_choreograph(args: argparse.Namespace) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from . import __version__
+    from .. import __version__
 
     p = argparse.ArgumentParser(
         prog="mtex",
@@ -457,7 +457,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--gif", default=None, help="also render an animated GIF here")
     s.set_defaults(func=_cmd_choreograph)
 
-    from ._implicit_cli import register as _register_implicit
+    from ._implicit import register as _register_implicit
 
     _register_implicit(sub)  # implicit-synth, track
     return p

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ._motion import Motion
-from ._skeleton import POSITION_CHANNELS, ROTATION_CHANNELS, Skeleton
+from ..motion import Motion
+from ..motion import POSITION_CHANNELS, ROTATION_CHANNELS, Skeleton
 
 __all__ = ["euler_to_quat", "parse_bvh", "quat_to_euler", "read_bvh", "write_bvh"]
 

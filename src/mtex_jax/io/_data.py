@@ -5,7 +5,7 @@ from __future__ import annotations
 from importlib import resources
 
 from ._deepmimic import parse_deepmimic
-from ._motion import Motion
+from ..motion import Motion
 
 __all__ = ["example_names", "example_path", "load_example"]
 
@@ -33,7 +33,7 @@ def load_example(name: str) -> Motion:
     """Load an embedded DeepMimic humanoid3d clip by name (see :func:`example_names`).
 
     The clips ship inside the package (they work from an installed wheel); their zlib licence
-    notice is in ``mtex_jax/data/deepmimic/LICENSE-zlib.txt``.
+    notice is in ``mtex_jax.data.deepmimic/LICENSE-zlib.txt``.
 
     Raises:
         ValueError: unknown name (the message lists the available ones).

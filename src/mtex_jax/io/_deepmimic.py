@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._motion import Motion, slerp
-from ._skeleton import Skeleton
+from ..motion import Motion, slerp
+from ..motion import Skeleton
 
 __all__ = ["HUMANOID3D", "parse_deepmimic", "read_deepmimic"]
 

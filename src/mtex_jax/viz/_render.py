@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 
-from ._kinematics import forward_kinematics
-from ._motion import Motion
+from ..motion import forward_kinematics
+from ..motion import Motion
 
 if TYPE_CHECKING:
     from matplotlib.backends.backend_agg import FigureCanvasAgg

@@ -26,9 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._features import FeatureMap
-from ._io import load_arrays_json, save_arrays_json
-from ._motion import Motion
+from ..motion import FeatureMap
+from ..internal import load_arrays_json, save_arrays_json
+from ..motion import Motion
 from ._segment import Segmentation, _check_lengths, _segment_batch, segment
 from ._texton import (
     Texton,

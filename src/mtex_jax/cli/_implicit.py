@@ -34,7 +34,7 @@ def _non_negative(name: str, value: float) -> float:
 
 
 def _load(sources: list[str], fps: float | None):
-    from ._readers import read_motion
+    from ..io import read_motion
 
     if not sources:
         raise ValueError("no training clips given")
@@ -49,7 +49,7 @@ def _load(sources: list[str], fps: float | None):
 
 
 def _build(args: argparse.Namespace, motions):
-    from ._implicit import ImplicitModel
+    from ..implicit import ImplicitModel
 
     _positive_int("window", args.window)
     t0 = time.perf_counter()
@@ -68,7 +68,7 @@ def _build(args: argparse.Namespace, motions):
 def _cmd_synth(args: argparse.Namespace) -> int:
     import jax
 
-    from ._bvh import write_bvh
+    from ..io import write_bvh
 
     _positive_int("frames", args.frames)
     _positive("beta", args.beta)
@@ -103,7 +103,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         f"noise={args.noise:g}, seed={args.seed}; {time.perf_counter() - t0:.1f} s)"
     )
     if args.gif:
-        from ._render import render_gif
+        from ..viz import render_gif
 
         gif = render_gif(motion, args.gif, title=f"implicit model, beta={args.beta:g}")
         print(f"wrote {gif}")
@@ -114,8 +114,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from ._readers import read_motion
-    from ._tracking import make_problem, track
+    from ..io import read_motion
+    from ..implicit import make_problem, track
 
     _positive_int("particles", args.particles)
     if args.frames is not None:

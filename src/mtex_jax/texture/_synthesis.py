@@ -44,8 +44,8 @@ from jax import lax
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from mtex_jax._linalg import _pair_blocks, _sym, _tridiag_solve_rows
-from mtex_jax._texton import Texton
+from ._linalg import _pair_blocks, _sym, _tridiag_solve_rows
+from ._texton import Texton
 
 __all__ = ["synthesize_texton"]
 
@@ -66,8 +66,8 @@ def _check_frames(name: str, y: Any, shape: tuple[int, ...]) -> Array:
 
 
 def synthesize_texton(
-    texton: Texton,
     key: Array | None,
+    texton: Texton,
     length: int,
     start: Float[ArrayLike, "2 D"],
     end: Float[ArrayLike, "2 D"] | None = None,

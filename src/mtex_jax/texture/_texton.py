@@ -1746,8 +1746,8 @@ _exact_ll_jit = eqx.filter_jit(_exact_ll_impl)
 
 
 def sample_texton(
-    texton: Texton,
     key: Array,
+    texton: Texton,
     length: int,
     x1: ArrayLike | None = None,
     x2: ArrayLike | None = None,

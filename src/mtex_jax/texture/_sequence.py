@@ -39,10 +39,10 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from mtex_jax._motion import Motion
-from mtex_jax._paths import path_of_length, random_path, shortest_path
-from mtex_jax._synthesis import Weighting, _constrained, _standard_normal
-from mtex_jax._texton import Texton, frame_terms, init_terms
+from ..motion import Motion
+from ._paths import path_of_length, random_path, shortest_path
+from ._synthesis import Weighting, _constrained, _standard_normal
+from ._texton import Texton, frame_terms, init_terms
 
 __all__ = ["Synthesis", "choreograph", "match_texton", "synthesize"]
 
@@ -91,7 +91,7 @@ class Synthesis(eqx.Module):
 
 
 def _check_texture(texture: Any) -> None:
-    from mtex_jax._learn import MotionTexture
+    from ._learn import MotionTexture
 
     if not isinstance(texture, MotionTexture):
         raise TypeError(f"expected a MotionTexture, got {type(texture).__name__}")
@@ -423,8 +423,8 @@ def _finish(
 
 
 def synthesize(
-    texture: Any,
     key: Array | None,
+    texture: Any,
     path: ArrayLike | None = None,
     n_frames: int | None = None,
     *,
@@ -496,7 +496,7 @@ def synthesize(
             raise ValueError("a random path needs a key (key=None only with a given path)")
         shortest = int(max(2, np.asarray(texture.segment_lengths).min()))
         n_max = n_frames // shortest + 2
-        walk = random_path(texture, k_path, n_max, start=start_texton)
+        walk = random_path(k_path, texture, n_max, start=start_texton)
         walk_seg = _instances(texture, k_inst, walk)
         drawn = np.asarray(texture.segment_lengths)[walk_seg]
         n = int(np.searchsorted(np.cumsum(drawn), n_frames) + 1)
@@ -572,8 +572,8 @@ def match_texton(
 
 
 def choreograph(
-    texture: Any,
     key: Array | None,
+    texture: Any,
     start_pose: Float[ArrayLike, "2 D"],
     end_pose: Float[ArrayLike, "2 D"],
     n_frames: int | None = None,

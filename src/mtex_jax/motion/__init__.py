@@ -1,0 +1,61 @@
+"""Motion data and its geometry: ``Motion``, ``Skeleton``, rotations, forward kinematics and
+the observation features (``FeatureMap``, MT §6.1, SPEC §1).
+"""
+
+from ._features import (
+    FeatureMap as FeatureMap,
+    load_feature_map as load_feature_map,
+    raw_features as raw_features,
+    unwrap_expmaps as unwrap_expmaps,
+)
+from ._kinematics import (
+    forward_kinematics as forward_kinematics,
+    forward_kinematics_arrays as forward_kinematics_arrays,
+)
+from ._motion import (
+    Motion as Motion,
+    concatenate_motions as concatenate_motions,
+    slerp as slerp,
+)
+from ._rotation import (
+    expmap_to_quat as expmap_to_quat,
+    quat_conj as quat_conj,
+    quat_from_axis_angle as quat_from_axis_angle,
+    quat_mul as quat_mul,
+    quat_normalize as quat_normalize,
+    quat_rotate as quat_rotate,
+    quat_to_expmap as quat_to_expmap,
+    quat_to_matrix as quat_to_matrix,
+    quat_twist as quat_twist,
+    yaw_quat as yaw_quat,
+)
+from ._skeleton import (
+    POSITION_CHANNELS as POSITION_CHANNELS,
+    ROTATION_CHANNELS as ROTATION_CHANNELS,
+    Skeleton as Skeleton,
+)
+
+__all__ = [
+    "FeatureMap",
+    "Motion",
+    "POSITION_CHANNELS",
+    "ROTATION_CHANNELS",
+    "Skeleton",
+    "concatenate_motions",
+    "expmap_to_quat",
+    "forward_kinematics",
+    "forward_kinematics_arrays",
+    "load_feature_map",
+    "quat_conj",
+    "quat_from_axis_angle",
+    "quat_mul",
+    "quat_normalize",
+    "quat_rotate",
+    "quat_to_expmap",
+    "quat_to_matrix",
+    "quat_twist",
+    "raw_features",
+    "slerp",
+    "unwrap_expmaps",
+    "yaw_quat",
+]

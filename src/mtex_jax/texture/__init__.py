@@ -1,0 +1,123 @@
+"""Motion Texture (Li, Wang & Shum 2002): textons (second-order LDS), their fitting and
+likelihoods, learning by EM, segmentation, texton paths and synthesis.
+"""
+
+from ._lds_refine import (
+    RefineReport as RefineReport,
+    exact_log_likelihood_segments as exact_log_likelihood_segments,
+    refine_texton as refine_texton,
+)
+from ._learn import (
+    LearnConfig as LearnConfig,
+    MotionTexture as MotionTexture,
+    bic_select as bic_select,
+    greedy_init as greedy_init,
+    learn as learn,
+    load_texture as load_texture,
+    texture_summary as texture_summary,
+    threshold_for_textons as threshold_for_textons,
+)
+from ._linalg import (
+    BandedSolution as BandedSolution,
+    BlockTridiagCholesky as BlockTridiagCholesky,
+    block_banded_matvec as block_banded_matvec,
+    block_banded_solve as block_banded_solve,
+    block_banded_solve_status as block_banded_solve_status,
+    block_tridiag_cholesky as block_tridiag_cholesky,
+    block_tridiag_solve as block_tridiag_solve,
+)
+from ._paths import (
+    path_cost as path_cost,
+    path_of_length as path_of_length,
+    random_path as random_path,
+    shortest_path as shortest_path,
+)
+from ._segment import (
+    Segmentation as Segmentation,
+    segment as segment,
+    segment_scorer as segment_scorer,
+    viterbi_segments as viterbi_segments,
+)
+from ._sequence import (
+    Synthesis as Synthesis,
+    choreograph as choreograph,
+    match_texton as match_texton,
+    synthesize as synthesize,
+)
+from ._synthesis import (
+    synthesize_texton as synthesize_texton,
+)
+from ._texton import (
+    DynamicsStats as DynamicsStats,
+    FrameStats as FrameStats,
+    SegmentScorer as SegmentScorer,
+    Subspace as Subspace,
+    Texton as Texton,
+    companion_matrix as companion_matrix,
+    dynamics_stats as dynamics_stats,
+    exact_log_likelihood as exact_log_likelihood,
+    fit_texton as fit_texton,
+    frame_stats as frame_stats,
+    frame_terms as frame_terms,
+    init_terms as init_terms,
+    sample_texton as sample_texton,
+    segment_log_likelihood as segment_log_likelihood,
+    segment_scores as segment_scores,
+    spectral_radius as spectral_radius,
+    stack_textons as stack_textons,
+    subspace_from_stats as subspace_from_stats,
+    texton_from_stats as texton_from_stats,
+)
+
+__all__ = [
+    "BandedSolution",
+    "BlockTridiagCholesky",
+    "DynamicsStats",
+    "FrameStats",
+    "LearnConfig",
+    "MotionTexture",
+    "RefineReport",
+    "SegmentScorer",
+    "Segmentation",
+    "Subspace",
+    "Synthesis",
+    "Texton",
+    "bic_select",
+    "block_banded_matvec",
+    "block_banded_solve",
+    "block_banded_solve_status",
+    "block_tridiag_cholesky",
+    "block_tridiag_solve",
+    "choreograph",
+    "companion_matrix",
+    "dynamics_stats",
+    "exact_log_likelihood",
+    "exact_log_likelihood_segments",
+    "fit_texton",
+    "frame_stats",
+    "frame_terms",
+    "greedy_init",
+    "init_terms",
+    "learn",
+    "load_texture",
+    "match_texton",
+    "path_cost",
+    "path_of_length",
+    "random_path",
+    "refine_texton",
+    "sample_texton",
+    "segment",
+    "segment_log_likelihood",
+    "segment_scorer",
+    "segment_scores",
+    "shortest_path",
+    "spectral_radius",
+    "stack_textons",
+    "subspace_from_stats",
+    "synthesize",
+    "synthesize_texton",
+    "texton_from_stats",
+    "texture_summary",
+    "threshold_for_textons",
+    "viterbi_segments",
+]

@@ -1,0 +1,16 @@
+"""Pictures: stick-figure GIFs and filmstrips, texton timelines.
+"""
+
+from ._plots import (
+    plot_timeline as plot_timeline,
+)
+from ._render import (
+    render_filmstrip as render_filmstrip,
+    render_gif as render_gif,
+)
+
+__all__ = [
+    "plot_timeline",
+    "render_filmstrip",
+    "render_gif",
+]
