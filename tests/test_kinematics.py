@@ -16,7 +16,9 @@ SK = mj.io.HUMANOID3D
 
 
 def _expmap_fk(root, em):
-    return mj.motion.forward_kinematics_arrays(SK, root, mj.motion.expmap_to_quat(em), end_sites=True)
+    return mj.motion.forward_kinematics_arrays(
+        SK, root, mj.motion.expmap_to_quat(em), end_sites=True
+    )
 
 
 def test_rotation_helpers_match_scipy():

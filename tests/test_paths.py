@@ -38,7 +38,9 @@ def test_shortest_path_equals_scipy_dijkstra(n, sparsity, seed):
                 continue
             p = mj.texture.shortest_path(M, u, v)
             assert p[0] == u and p[-1] == v and len(set(p.tolist())) == len(p)
-            np.testing.assert_allclose(mj.texture.path_cost(M, p), dist[u, v], rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(
+                mj.texture.path_cost(M, p), dist[u, v], rtol=1e-12, atol=1e-12
+            )
             # same path as scipy's predecessor tree (ties have probability zero here)
             ref = [v]
             while ref[-1] != u:

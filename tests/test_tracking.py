@@ -9,7 +9,6 @@ import pytest
 
 from mtex_jax.cli._main import main
 from mtex_jax.implicit._model import ImplicitModel
-from mtex_jax.motion._kinematics import forward_kinematics_arrays
 from mtex_jax.implicit._tracking import (
     Camera,
     Prior,
@@ -19,6 +18,7 @@ from mtex_jax.implicit._tracking import (
     make_problem,
     track,
 )
+from mtex_jax.motion._kinematics import forward_kinematics_arrays
 
 WINDOW = 10
 HELD_OUT = 2  # 60_03 is tracked; the database holds the other 13 clips

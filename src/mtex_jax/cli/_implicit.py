@@ -114,8 +114,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from ..io import read_motion
     from ..implicit import make_problem, track
+    from ..io import read_motion
 
     _positive_int("particles", args.particles)
     if args.frames is not None:

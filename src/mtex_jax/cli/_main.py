@@ -156,12 +156,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     """The main job on the embedded default data: learn a texture, synthesise a new dance."""
     import jax
 
-    from ..io import write_bvh
-    from ..io import example_names, load_example
-    from ..texture import LearnConfig, learn, texture_summary
-    from ..viz import plot_timeline
-    from ..viz import render_gif
-    from ..texture import synthesize
+    from ..io import example_names, load_example, write_bvh
+    from ..texture import LearnConfig, learn, synthesize, texture_summary
+    from ..viz import plot_timeline, render_gif
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

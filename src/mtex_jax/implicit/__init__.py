@@ -4,17 +4,35 @@ database, probabilistic tree search and the particle-filter tracker.
 
 from ._model import (
     ImplicitModel as ImplicitModel,
+)
+from ._model import (
     pose_vectors as pose_vectors,
+)
+from ._model import (
     sign_codes as sign_codes,
+)
+from ._model import (
     velocity_channels as velocity_channels,
 )
 from ._tracking import (
     Camera as Camera,
-    TrackResult as TrackResult,
+)
+from ._tracking import (
     TrackingProblem as TrackingProblem,
+)
+from ._tracking import (
+    TrackResult as TrackResult,
+)
+from ._tracking import (
     decode_frame as decode_frame,
+)
+from ._tracking import (
     default_joints as default_joints,
+)
+from ._tracking import (
     make_problem as make_problem,
+)
+from ._tracking import (
     track as track,
 )
 

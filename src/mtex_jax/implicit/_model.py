@@ -65,8 +65,7 @@ from jax.core import Tracer
 from jax.scipy.special import log_ndtr, ndtr
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
-from ..motion import FeatureMap
-from ..motion import Motion
+from ..motion import FeatureMap, Motion
 
 __all__ = ["ImplicitModel", "pose_vectors", "sign_codes", "velocity_channels"]
 

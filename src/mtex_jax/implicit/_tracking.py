@@ -47,11 +47,18 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
-from ..motion import FeatureMap
+from ..motion import (
+    FeatureMap,
+    Motion,
+    expmap_to_quat,
+    forward_kinematics,
+    forward_kinematics_arrays,
+    quat_mul,
+    quat_rotate,
+    quat_twist,
+    yaw_quat,
+)
 from ._model import ImplicitModel, tree_sample_indices, velocity_channels
-from ..motion import forward_kinematics, forward_kinematics_arrays
-from ..motion import Motion
-from ..motion import expmap_to_quat, quat_mul, quat_rotate, quat_twist, yaw_quat
 
 __all__ = [
     "Camera",

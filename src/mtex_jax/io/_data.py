@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from importlib import resources
 
-from ._deepmimic import parse_deepmimic
 from ..motion import Motion
+from ._deepmimic import parse_deepmimic
 
 __all__ = ["example_names", "example_path", "load_example"]
 

@@ -8,8 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..motion import Motion, slerp
-from ..motion import Skeleton
+from ..motion import Motion, Skeleton, slerp
 
 __all__ = ["HUMANOID3D", "parse_deepmimic", "read_deepmimic"]
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..motion import Motion
 from ._bvh import read_bvh
 from ._data import load_example
 from ._deepmimic import read_deepmimic
-from ..motion import Motion
 
 __all__ = ["read_motion"]
 

@@ -26,9 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ..motion import FeatureMap
 from ..internal import load_arrays_json, save_arrays_json
-from ..motion import Motion
+from ..motion import FeatureMap, Motion
 from ._segment import Segmentation, _check_lengths, _segment_batch, segment
 from ._texton import (
     Texton,

@@ -1,11 +1,12 @@
-"""Pictures: stick-figure GIFs and filmstrips, texton timelines.
-"""
+"""Pictures: stick-figure GIFs and filmstrips, texton timelines."""
 
 from ._plots import (
     plot_timeline as plot_timeline,
 )
 from ._render import (
     render_filmstrip as render_filmstrip,
+)
+from ._render import (
     render_gif as render_gif,
 )
 

@@ -21,8 +21,7 @@ from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 
-from ..motion import forward_kinematics
-from ..motion import Motion
+from ..motion import Motion, forward_kinematics
 
 if TYPE_CHECKING:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
