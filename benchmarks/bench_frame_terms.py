@@ -50,16 +50,20 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # a script, not the library: float64 as in the issue
 
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
+import jax.numpy as jnp
+import numpy as np
 
-from _machine import cpu_and_memory  # noqa: E402  (benchmarks/ is on sys.path)
+from _machine import cpu_and_memory
 
 try:
-    from mtex_jax.texture._texton import Texton, _available_cores, frame_terms
+    from mtex_jax.texture._frame_terms import frame_terms
+    from mtex_jax.texture._texton import Texton
+    from mtex_jax.texture._workers import _available_cores
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-    from mtex_jax.texture._texton import Texton, _available_cores, frame_terms
+    from mtex_jax.texture._frame_terms import frame_terms
+    from mtex_jax.texture._texton import Texton
+    from mtex_jax.texture._workers import _available_cores
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -32,17 +32,14 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # the benchmark's choice; the library never does this
 
-import equinox as eqx  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
 
-import mtex_jax as mj  # noqa: E402
-from mtex_jax.implicit._model import (  # noqa: E402
-    ImplicitModel,
-    exact_sample_indices,
-    tree_sample_indices,
-)
-from mtex_jax.implicit._tracking import make_problem, track  # noqa: E402
+import mtex_jax as mj
+from mtex_jax.implicit._model import ImplicitModel
+from mtex_jax.implicit._tracking import make_problem, track
+from mtex_jax.implicit._tree import exact_sample_indices, tree_sample_indices
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
@@ -133,7 +130,7 @@ def bench_speed(salsa30, salsa120, quick: bool) -> list[dict]:
     key = jax.random.PRNGKey(0)
     for label, clips in configs:
         t0 = time.perf_counter()
-        model = ImplicitModel.build(clips, WINDOW)
+        model = mj.implicit.learn(clips, WINDOW)
         build = time.perf_counter() - t0
         probes = model.windows_of(clips[0])
         sel = np.linspace(0, probes.shape[0] - 1, N_PROBES).astype(int)
@@ -269,7 +266,7 @@ def bench_tracking(salsa30, quick: bool) -> dict:
     eval_seeds = (0, 1, 2, 3, 4) if not quick else (0,)
 
     def model_without(i):
-        return ImplicitModel.build([m for k, m in enumerate(salsa30) if k != i], WINDOW)
+        return mj.implicit.learn([m for k, m in enumerate(salsa30) if k != i], WINDOW)
 
     def problem_for(model, i):
         return make_problem(
@@ -632,7 +629,7 @@ def main() -> None:
         salsa120 = load(None) if not args.quick else []
         res["speed"] = bench_speed(salsa30, salsa120, args.quick)
     if parts & {"quality", "synthesis"}:
-        model = ImplicitModel.build([m for k, m in enumerate(salsa30) if k != TUNE_CLIP], WINDOW)
+        model = mj.implicit.learn([m for k, m in enumerate(salsa30) if k != TUNE_CLIP], WINDOW)
         probes = model.windows_of(salsa30[TUNE_CLIP])
         probes = probes[np.linspace(0, probes.shape[0] - 1, N_PROBES).astype(int)]
         if "quality" in parts:

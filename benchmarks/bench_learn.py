@@ -56,11 +56,11 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # a script, not the library: float64 as in the issue
 
-import jax.numpy as jnp  # noqa: E402
-import jax.random as jr  # noqa: E402
-import numpy as np  # noqa: E402
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
 
-from _machine import cpu_and_memory  # noqa: E402  (benchmarks/ is on sys.path)
+from _machine import cpu_and_memory
 
 try:
     import mtex_jax as mj
@@ -68,15 +68,14 @@ except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
     import mtex_jax as mj
 
-from mtex_jax.texture._learn import LearnConfig, greedy_init, learn  # noqa: E402
-from mtex_jax.texture._segment import viterbi_segments  # noqa: E402
-from mtex_jax.texture._texton import (  # noqa: E402
-    fit_texton,
-    frame_terms,
-    init_terms,
-    segment_scores,
-    stack_textons,
-)
+from mtex_jax.texture._config import LearnConfig
+from mtex_jax.texture._fit import fit_texton
+from mtex_jax.texture._frame_terms import frame_terms, init_terms
+from mtex_jax.texture._init import greedy_init
+from mtex_jax.texture._learn import learn
+from mtex_jax.texture._scores import segment_scores
+from mtex_jax.texture._segment import viterbi_segments
+from mtex_jax.texture._texton import stack_textons
 
 RESULTS = Path(__file__).resolve().parent / "results"
 Array = Any  # jax arrays, for annotations

@@ -49,23 +49,17 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # a script, not the library: float64 as in the issue
 
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
+import jax.numpy as jnp
+import numpy as np
 
 try:
     import mtex_jax  # noqa: F401
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-from mtex_jax.texture._synthesis import (  # noqa: E402
-    _bridge_usable,
-    _draw_noise,
-    _equations,
-    _normal_system,
-    _observe,
-    _solve_constrained,
-    synthesize_texton,
-)
-from mtex_jax.texture._texton import Texton  # noqa: E402
+from mtex_jax.texture._bridge import _bridge_usable
+from mtex_jax.texture._normal import _equations, _normal_system, _observe, _solve_constrained
+from mtex_jax.texture._synthesis import _draw_noise, synthesize_texton
+from mtex_jax.texture._texton import Texton
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

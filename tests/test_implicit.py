@@ -13,14 +13,9 @@ import pytest
 
 import mtex_jax as mj
 from mtex_jax.cli._main import main
-from mtex_jax.implicit._model import (
-    ImplicitModel,
-    _encode,
-    _sample_exact_traced,
-    _sample_tree_traced,
-    pose_vectors,
-    sign_codes,
-)
+from mtex_jax.implicit._model import ImplicitModel
+from mtex_jax.implicit._tree import _sample_exact_traced, _sample_tree_traced, sign_codes
+from mtex_jax.implicit._windows import _encode, pose_vectors
 
 WINDOW = 10
 HELD_OUT = 2  # 60_03: probes come from a clip the database has not seen
@@ -45,7 +40,7 @@ def train(salsa30):
 
 @pytest.fixture(scope="module")
 def model(train) -> ImplicitModel:
-    return ImplicitModel.build(train, WINDOW)
+    return mj.implicit.learn(train, WINDOW)
 
 
 @pytest.fixture(scope="module")
@@ -85,9 +80,9 @@ def test_build_sizes_b_and_explained_variance(model, train):
 
 def test_max_components_caps_b(model, train):
     fm = model.feature_map
-    m = ImplicitModel.build(train[:3], 5, max_components=4, feature_map=fm)
+    m = mj.implicit.learn(train[:3], 5, max_components=4, feature_map=fm)
     assert m.n_components == 4
-    m2 = ImplicitModel.build(train[:3], 5, n_components=7, feature_map=fm)
+    m2 = mj.implicit.learn(train[:3], 5, n_components=7, feature_map=fm)
     assert m2.n_components == 7
     assert m2.explained_variance > m.explained_variance
 
@@ -222,7 +217,7 @@ def test_tree_within_factor_of_exact_sampler(model, probes):
 
 def test_exact_sampler_matches_its_distribution():
     """Empirical frequencies of sample_exact match softmax(−d²/2β) (IP Eq. 3)."""
-    m = ImplicitModel.build(mj.load_example("walk"), 3)
+    m = mj.implicit.learn(mj.load_example("walk"), 3)
     probe = m.windows[5] + 0.3
     d2 = np.asarray(jnp.sum((m.windows - probe) ** 2, axis=1))
     beta = float(np.sort(d2)[5] - d2.min()) / 2  # spread over a handful of examples
@@ -245,7 +240,7 @@ def test_importance_resampled_tree_tends_to_the_exact_sampler():
     """candidates = K > 1 (extension): K walks reweighted by the exact kernel over the walk's
     proposal probability. On a small database its distribution is close to the exact one for
     large K, and far closer than the plain walk (K = 1)."""
-    m = ImplicitModel.build(mj.load_example("walk"), 3)
+    m = mj.implicit.learn(mj.load_example("walk"), 3)
     probe = m.windows[5] + 0.3
     d2 = np.asarray(jnp.sum((m.windows - probe) ** 2, axis=1))
     beta = float(np.sort(d2)[5] - d2.min()) / 2
@@ -349,17 +344,17 @@ def test_synthesize_decodes_and_exact_synthesis_is_smooth(model, salsa30):
 def test_bad_input_raises_clear_value_errors(model, probes, salsa30):
     short = salsa30[0][: WINDOW + 1]
     with pytest.raises(ValueError, match="longer than motion 1"):
-        ImplicitModel.build([salsa30[0], short], WINDOW)
+        mj.implicit.learn([salsa30[0], short], WINDOW)
     with pytest.raises(ValueError, match="empty database"):
-        ImplicitModel.build([], WINDOW)
+        mj.implicit.learn([], WINDOW)
     with pytest.raises(ValueError, match="window"):
-        ImplicitModel.build(salsa30[:1], 0)
+        mj.implicit.learn(salsa30[:1], 0)
     bad = salsa30[0][:50].numpy()
     rot = np.array(bad.rotations)
     rot[7, 3] = np.nan
     nan_motion = mj.Motion(bad.skeleton, bad.fps, bad.root_positions, rot)
     with pytest.raises(ValueError, match="NaN"):
-        ImplicitModel.build([nan_motion], WINDOW)
+        mj.implicit.learn([nan_motion], WINDOW)
     with pytest.raises(ValueError, match="NaN"):
         model.windows_of(nan_motion)
     key = jax.random.PRNGKey(0)

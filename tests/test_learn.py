@@ -12,7 +12,9 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 import mtex_jax as mj
-from mtex_jax.texture._learn import LearnConfig, MotionTexture, learn, load_texture
+from mtex_jax.texture._config import LearnConfig
+from mtex_jax.texture._learn import learn
+from mtex_jax.texture._model import MotionTexture, load_texture
 
 
 # ---------------------------------------------------------------------------------------------

@@ -10,10 +10,14 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 from jax.test_util import check_grads
 
+from mtex_jax.texture._banded import (
+    block_banded_matvec,
+    block_banded_solve,
+    block_banded_solve_status,
+)
 from mtex_jax.texture._linalg import (
     _factor,
     _solve_rows_fused,
@@ -21,9 +25,6 @@ from mtex_jax.texture._linalg import (
     _solve_rows_unbatched,
     _substitute_rows,
     _tridiag_solve_rows,
-    block_banded_matvec,
-    block_banded_solve,
-    block_banded_solve_status,
     block_tridiag_cholesky,
     block_tridiag_solve,
 )

@@ -10,7 +10,8 @@ import pytest
 from PIL import Image
 
 import mtex_jax as mj
-from mtex_jax.viz._render import _TO_PLOT, render_filmstrip, render_gif
+from mtex_jax.viz._panel import _TO_PLOT
+from mtex_jax.viz._render import render_filmstrip, render_gif
 
 LEFT_RGB = (0x1F, 0x5F, 0xBF)
 RIGHT_RGB = (0xD6, 0x27, 0x28)

@@ -10,20 +10,15 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 from jax.test_util import check_grads
 from scipy import stats
 
-from mtex_jax.texture._synthesis import (
-    _bridge_usable,
-    _equations,
-    _sincos_turn,
-    _solve_constrained,
-    _standard_normal,
-    synthesize_texton,
-)
-from mtex_jax.texture._texton import Texton, fit_texton, spectral_radius
+from mtex_jax.texture._bridge import _bridge_usable
+from mtex_jax.texture._fit import fit_texton
+from mtex_jax.texture._normal import _equations, _solve_constrained
+from mtex_jax.texture._synthesis import _sincos_turn, _standard_normal, synthesize_texton
+from mtex_jax.texture._texton import Texton, spectral_radius
 
 
 def make_texton(seed: int, D: int, k: int) -> Texton:

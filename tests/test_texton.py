@@ -11,39 +11,38 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import equinox as eqx  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-import scipy.stats  # noqa: E402
-from jax.test_util import check_grads  # noqa: E402
-from scipy.optimize import linear_sum_assignment  # noqa: E402
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.stats
+from jax.test_util import check_grads
+from scipy.optimize import linear_sum_assignment
 
-from mtex_jax.texture import _texton as _texton  # noqa: E402
-from mtex_jax.texture._lds_refine import (  # noqa: E402
+from mtex_jax.texture import (
+    _fit as _fit_mod,
+    _frame_terms as _frame_terms_mod,
+    _texton as _texton,
+    _workers as _workers,
+)
+from mtex_jax.texture._fit import fit_texton, texton_from_stats
+from mtex_jax.texture._frame_terms import frame_terms, init_terms
+from mtex_jax.texture._lds_refine import (
     RefineReport,
     exact_log_likelihood_segments,
     refine_texton,
 )
-from mtex_jax.texture._texton import (  # noqa: E402
+from mtex_jax.texture._likelihood import exact_log_likelihood, segment_log_likelihood
+from mtex_jax.texture._sample import sample_texton
+from mtex_jax.texture._scores import SegmentScorer, segment_scores
+from mtex_jax.texture._stats import (
     DynamicsStats,
     FrameStats,
-    SegmentScorer,
-    Texton,
     dynamics_stats,
-    exact_log_likelihood,
-    fit_texton,
     frame_stats,
-    frame_terms,
-    init_terms,
-    sample_texton,
-    segment_log_likelihood,
-    segment_scores,
-    spectral_radius,
-    stack_textons,
     subspace_from_stats,
-    texton_from_stats,
 )
+from mtex_jax.texture._texton import Texton, spectral_radius, stack_textons
 
 # --------------------------------------------------------------------------------------------
 # helpers: random systems and numpy references
@@ -594,15 +593,15 @@ def test_frame_terms_split_over_concurrent_executions(workers, monkeypatch):
     st = stack_textons([to_texton(p) for p in ps])
     Y = rng.standard_normal((T, D)) + 0.5
     parts = min(workers, 7)
-    assert _texton._n_parts(workers, st, jnp.asarray(Y)) == parts
+    assert _workers._n_parts(workers, st, jnp.asarray(Y)) == parts
     calls = []  # (thread, rows) of every kernel execution
-    kernel = _texton._frame_terms_jit
+    kernel = _frame_terms_mod._frame_terms_jit
 
     def spy(textons, *args, **kwargs):
         calls.append((threading.get_ident(), textons.n_textons))
         return kernel(textons, *args, **kwargs)
 
-    monkeypatch.setattr(_texton, "_frame_terms_jit", spy)
+    monkeypatch.setattr(_frame_terms_mod, "_frame_terms_jit", spy)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # e.g. a donated buffer that could not be reused
         dyn, obs = frame_terms(st, Y, workers=workers, block_size=8)
@@ -647,11 +646,11 @@ def test_frame_terms_workers_choice_and_validation():
     rng = np.random.default_rng(17)
     st = stack_textons([to_texton(random_texton_np(rng, 4, 2)) for _ in range(3)])
     small, large = jnp.zeros((10, 4)), jnp.zeros((2**20 // 3 + 1, 4))
-    cores = _texton._available_cores()
-    assert _texton._n_parts(None, st, small) == 1  # too little work: one execution
-    assert _texton._n_parts(None, st, large) == min(cores, 3)
-    assert _texton._n_parts(1, st, large) == 1
-    traced = jax.jit(lambda y: jnp.asarray(_texton._n_parts(2, st, y)))(small)
+    cores = _workers._available_cores()
+    assert _workers._n_parts(None, st, small) == 1  # too little work: one execution
+    assert _workers._n_parts(None, st, large) == min(cores, 3)
+    assert _workers._n_parts(1, st, large) == 1
+    traced = jax.jit(lambda y: jnp.asarray(_workers._n_parts(2, st, y)))(small)
     assert int(traced) == 1  # under a trace: one computation
     Y = rng.standard_normal((12, 4))
     for bad in (0, -1, 2.5, True, "2"):
@@ -713,19 +712,19 @@ def test_frame_terms_do_not_retrace_for_new_data():
     st = stack_textons([to_texton(random_texton_np(rng, 6, 2)) for _ in range(3)])
     frame_terms(st, rng.standard_normal((40, 6)))
     frame_terms(st, rng.standard_normal((40, 6)), chunk_size=1)
-    n0 = eqx.debug.get_num_traces(_texton._frame_terms_traced)
-    n0_chunk = eqx.debug.get_num_traces(_texton._all_terms_traced)
+    n0 = eqx.debug.get_num_traces(_frame_terms_mod._frame_terms_traced)
+    n0_chunk = eqx.debug.get_num_traces(_frame_terms_mod._all_terms_traced)
     for _ in range(3):
         st2 = jax.tree.map(lambda a: a * 1.01, st)
         frame_terms(st2, rng.standard_normal((40, 6)))
         frame_terms(st2, rng.standard_normal((40, 6)), chunk_size=1)
-    assert eqx.debug.get_num_traces(_texton._frame_terms_traced) == n0
-    assert eqx.debug.get_num_traces(_texton._all_terms_traced) == n0_chunk
+    assert eqx.debug.get_num_traces(_frame_terms_mod._frame_terms_traced) == n0
+    assert eqx.debug.get_num_traces(_frame_terms_mod._all_terms_traced) == n0_chunk
     fit_texton(rng.standard_normal((40, 6)), state_dim=2)
-    n1 = eqx.debug.get_num_traces(_texton._fit_texton_traced)
+    n1 = eqx.debug.get_num_traces(_fit_mod._fit_texton_traced)
     for _ in range(3):
         fit_texton(rng.standard_normal((40, 6)), rng.integers(-1, 3, 40), state_dim=2)
-    assert eqx.debug.get_num_traces(_texton._fit_texton_traced) == n1
+    assert eqx.debug.get_num_traces(_fit_mod._fit_texton_traced) == n1
 
 
 # --------------------------------------------------------------------------------------------

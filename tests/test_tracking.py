@@ -7,17 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import mtex_jax as mj
 from mtex_jax.cli._main import main
+from mtex_jax.implicit._camera import Camera, decode_frame, default_joints
 from mtex_jax.implicit._model import ImplicitModel
-from mtex_jax.implicit._tracking import (
-    Camera,
-    Prior,
-    _systematic,
-    decode_frame,
-    default_joints,
-    make_problem,
-    track,
-)
+from mtex_jax.implicit._tracking import Prior, _systematic, make_problem, track
 from mtex_jax.motion._kinematics import forward_kinematics_arrays
 
 WINDOW = 10
@@ -34,7 +28,7 @@ def salsa30(cmu_motions):
 def model(salsa30) -> ImplicitModel:
     train = [m for i, m in enumerate(salsa30) if i != HELD_OUT]
     chunks = [m[i : i + CHUNK] for m in train for i in range(0, m.n_frames - CHUNK + 1, CHUNK)]
-    return ImplicitModel.build(chunks, WINDOW)
+    return mj.implicit.learn(chunks, WINDOW)
 
 
 @pytest.fixture(scope="module")

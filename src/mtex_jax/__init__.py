@@ -14,28 +14,35 @@ concern, each with its own API:
 
 from importlib.metadata import PackageNotFoundError, version
 
-from .implicit import ImplicitModel as ImplicitModel
-from .implicit import track as track
-from .io import example_names as example_names
-from .io import load_example as load_example
-from .io import read_bvh as read_bvh
-from .io import read_deepmimic as read_deepmimic
-from .io import read_motion as read_motion
-from .io import write_bvh as write_bvh
-from .motion import FeatureMap as FeatureMap
-from .motion import Motion as Motion
-from .motion import Skeleton as Skeleton
-from .motion import forward_kinematics as forward_kinematics
-from .motion import load_feature_map as load_feature_map
-from .texture import LearnConfig as LearnConfig
-from .texture import MotionTexture as MotionTexture
-from .texture import choreograph as choreograph
-from .texture import learn as learn
-from .texture import load_texture as load_texture
-from .texture import synthesize as synthesize
-from .viz import plot_timeline as plot_timeline
-from .viz import render_filmstrip as render_filmstrip
-from .viz import render_gif as render_gif
+from .implicit import ImplicitModel as ImplicitModel, track as track
+from .io import (
+    example_names as example_names,
+    load_example as load_example,
+    read_bvh as read_bvh,
+    read_deepmimic as read_deepmimic,
+    read_motion as read_motion,
+    write_bvh as write_bvh,
+)
+from .motion import (
+    FeatureMap as FeatureMap,
+    Motion as Motion,
+    Skeleton as Skeleton,
+    forward_kinematics as forward_kinematics,
+    load_feature_map as load_feature_map,
+)
+from .texture import (
+    LearnConfig as LearnConfig,
+    MotionTexture as MotionTexture,
+    choreograph as choreograph,
+    learn as learn,
+    load_texture as load_texture,
+    synthesize as synthesize,
+)
+from .viz import (
+    plot_timeline as plot_timeline,
+    render_filmstrip as render_filmstrip,
+    render_gif as render_gif,
+)
 
 try:
     __version__ = version("mtex_jax")

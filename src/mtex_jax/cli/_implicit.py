@@ -10,27 +10,11 @@ import argparse
 import time
 from pathlib import Path
 
+from ._validators import non_negative, positive, positive_int
+
 __all__ = ["register"]
 
 _CLIP_HELP = "training clips: .bvh files, DeepMimic JSON files or example:NAME"
-
-
-def _positive_int(name: str, value: int) -> int:
-    if value < 1:
-        raise ValueError(f"--{name} must be at least 1, got {value}")
-    return value
-
-
-def _positive(name: str, value: float) -> float:
-    if not (value == value and value > 0 and value != float("inf")):
-        raise ValueError(f"--{name} must be a positive number, got {value}")
-    return value
-
-
-def _non_negative(name: str, value: float) -> float:
-    if not (value == value and value >= 0 and value != float("inf")):
-        raise ValueError(f"--{name} must be a non-negative number, got {value}")
-    return value
 
 
 def _load(sources: list[str], fps: float | None):
@@ -49,11 +33,11 @@ def _load(sources: list[str], fps: float | None):
 
 
 def _build(args: argparse.Namespace, motions):
-    from ..implicit import ImplicitModel
+    from ..implicit import learn as implicit_learn
 
-    _positive_int("window", args.window)
+    positive_int("window", args.window)
     t0 = time.perf_counter()
-    model = ImplicitModel.build(motions, args.window)
+    model = implicit_learn(motions, args.window)
     s = model.summary()
     print(
         f"database: {s['n_examples']} windows of {s['window']} frames at {s['fps']:g} Hz from "
@@ -70,9 +54,9 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
     from ..io import write_bvh
 
-    _positive_int("frames", args.frames)
-    _positive("beta", args.beta)
-    _non_negative("noise", args.noise)
+    positive_int("frames", args.frames)
+    positive("beta", args.beta)
+    non_negative("noise", args.noise)
     out = Path(args.output)
     if out.suffix.lower() != ".bvh":
         raise ValueError(f"-o/--output must end in .bvh, got {out}")
@@ -117,14 +101,14 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from ..implicit import make_problem, track
     from ..io import read_motion
 
-    _positive_int("particles", args.particles)
+    positive_int("particles", args.particles)
     if args.frames is not None:
-        _positive_int("frames", args.frames)
-    _positive("beta", args.beta)
-    _non_negative("noise", args.noise)
-    _non_negative("cv-noise", args.cv_noise)
-    _non_negative("pixel-noise", args.pixel_noise)
-    _positive("likelihood-sigma", args.likelihood_sigma)
+        positive_int("frames", args.frames)
+    positive("beta", args.beta)
+    non_negative("noise", args.noise)
+    non_negative("cv-noise", args.cv_noise)
+    non_negative("pixel-noise", args.pixel_noise)
+    positive("likelihood-sigma", args.likelihood_sigma)
     if args.start < 0:
         raise ValueError(f"--start must be ≥ 0, got {args.start}")
     if args.plot and not Path(args.plot).parent.exists():

@@ -2,38 +2,29 @@
 database, probabilistic tree search and the particle-filter tracker.
 """
 
+from ._camera import (
+    Camera as Camera,
+    decode_frame as decode_frame,
+    default_joints as default_joints,
+)
+from ._learn import (
+    learn as learn,
+)
 from ._model import (
     ImplicitModel as ImplicitModel,
 )
-from ._model import (
-    pose_vectors as pose_vectors,
-)
-from ._model import (
-    sign_codes as sign_codes,
-)
-from ._model import (
-    velocity_channels as velocity_channels,
-)
-from ._tracking import (
-    Camera as Camera,
-)
 from ._tracking import (
     TrackingProblem as TrackingProblem,
-)
-from ._tracking import (
     TrackResult as TrackResult,
-)
-from ._tracking import (
-    decode_frame as decode_frame,
-)
-from ._tracking import (
-    default_joints as default_joints,
-)
-from ._tracking import (
     make_problem as make_problem,
-)
-from ._tracking import (
     track as track,
+)
+from ._tree import (
+    sign_codes as sign_codes,
+)
+from ._windows import (
+    pose_vectors as pose_vectors,
+    velocity_channels as velocity_channels,
 )
 
 __all__ = [
@@ -43,6 +34,7 @@ __all__ = [
     "TrackingProblem",
     "decode_frame",
     "default_joints",
+    "learn",
     "make_problem",
     "pose_vectors",
     "sign_codes",

@@ -5,8 +5,6 @@ Not part of the user-facing API; tests and advanced users may import from here.
 
 from ._arrays import (
     load_arrays_json as load_arrays_json,
-)
-from ._arrays import (
     save_arrays_json as save_arrays_json,
 )
 

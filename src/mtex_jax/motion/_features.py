@@ -35,7 +35,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..internal import load_arrays_json, save_arrays_json
 from ._kinematics import forward_kinematics_arrays
-from ._motion import Motion
+from ._motion import Motion, _check_compatible
 from ._rotation import (
     expmap_to_quat,
     quat_conj,
@@ -46,15 +46,11 @@ from ._rotation import (
     wrap_angle,
     yaw_quat,
 )
-from ._skeleton import Skeleton
+from ._skeleton import Skeleton, ground_axes
 
 __all__ = ["FeatureMap", "load_feature_map", "raw_features", "unwrap_expmaps"]
 
 FORMAT_VERSION = 1
-
-
-def _axes(up: int) -> tuple[int, int, int]:
-    return up, (up + 1) % 3, (up + 2) % 3
 
 
 def _unit(up: int) -> np.ndarray:
@@ -99,7 +95,7 @@ def raw_features(
     rotations = jnp.asarray(rotations)
     p = jnp.asarray(root_positions, dtype=rotations.dtype)
     t = rotations.shape[0]
-    u, h0, h1 = _axes(up_axis)
+    u, h0, h1 = ground_axes(up_axis)
     up = jnp.asarray(_unit(up_axis), dtype=rotations.dtype)
     q_root = rotations[:, 0]
     psi = quat_twist(q_root, up)
@@ -133,7 +129,7 @@ def _decode_raw(
     start_heading: Float[Array, ""],
 ) -> tuple[Array, Array, Array | None]:
     t = raw.shape[0]
-    u, h0, h1 = _axes(up_axis)
+    u, h0, h1 = ground_axes(up_axis)
     up = jnp.asarray(_unit(up_axis), dtype=raw.dtype)
     dh = raw[:, 0:2]
     height = raw[:, 2]
@@ -233,15 +229,7 @@ class FeatureMap(eqx.Module):
         for i, m in enumerate(motions):
             if not isinstance(m, Motion):
                 raise TypeError(f"FeatureMap.fit: item {i} is {type(m).__name__}, not a Motion")
-            if not m.skeleton.same_structure(first.skeleton):
-                raise ValueError(f"FeatureMap.fit: motion {i} has a different skeleton")
-            if m.fps != first.fps:
-                raise ValueError(
-                    f"FeatureMap.fit: motion {i} has fps {m.fps:g}, motion 0 has {first.fps:g}; "
-                    "resample with motion.resample(fps) first"
-                )
-            if (m.local_positions is None) != (first.local_positions is None):
-                raise ValueError("FeatureMap.fit: local_positions present in some motions only")
+        _check_compatible(motions, "FeatureMap.fit", "resample with motion.resample(fps) first")
         raws = [np.asarray(_raw(m)) for m in motions]
         allr = np.concatenate(raws, axis=0)
         if not np.all(np.isfinite(allr)):
@@ -398,7 +386,7 @@ def load_feature_map(path: str | os.PathLike[str]) -> FeatureMap:
 
 def _channel_names(sk: Skeleton, has_lp: bool) -> tuple[str, ...]:
     ax = "xyz"
-    u, h0, h1 = _axes(sk.up_axis)
+    u, h0, h1 = ground_axes(sk.up_axis)
     names = [f"root.d{ax[h0]}", f"root.d{ax[h1]}", f"root.{ax[u]}", "root.dyaw"]
     names += [f"root.tilt.{c}" for c in ax]
     for j in range(1, sk.n_joints):

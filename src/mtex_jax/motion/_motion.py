@@ -160,21 +160,27 @@ def slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
     return out / np.linalg.norm(out, axis=-1, keepdims=True)
 
 
+def _check_compatible(motions: Sequence[Motion], where: str, hint: str) -> None:
+    """Raise ``ValueError`` unless every motion has the first one's skeleton structure, frame
+    rate and (absence of) per-frame local positions."""
+    first = motions[0]
+    for i, m in enumerate(motions[1:], start=1):
+        if not m.skeleton.same_structure(first.skeleton):
+            raise ValueError(f"{where}: motion {i} has a different skeleton")
+        if m.fps != first.fps:
+            raise ValueError(
+                f"{where}: motion {i} has fps {m.fps:g}, motion 0 has {first.fps:g}; {hint}"
+            )
+        if (m.local_positions is None) != (first.local_positions is None):
+            raise ValueError(f"{where}: local_positions present in some motions only")
+
+
 def concatenate_motions(motions: Sequence[Motion]) -> Motion:
     """Join clips of one skeleton and frame rate end to end (frames are appended as they are)."""
     if not motions:
         raise ValueError("concatenate_motions: empty list")
     first = motions[0]
-    for i, m in enumerate(motions[1:], start=1):
-        if not m.skeleton.same_structure(first.skeleton):
-            raise ValueError(f"concatenate_motions: motion {i} has a different skeleton")
-        if m.fps != first.fps:
-            raise ValueError(
-                f"concatenate_motions: motion {i} has fps {m.fps}, motion 0 has {first.fps}; "
-                "resample first"
-            )
-        if (m.local_positions is None) != (first.local_positions is None):
-            raise ValueError("concatenate_motions: local_positions present in some motions only")
+    _check_compatible(motions, "concatenate_motions", "resample first")
     lp = None
     if first.local_positions is not None:
         lp = np.concatenate([np.asarray(m.local_positions) for m in motions])

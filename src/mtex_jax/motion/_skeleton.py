@@ -174,6 +174,15 @@ class Skeleton:
         return json.dumps(self.to_json_dict())
 
 
+def ground_axes(up_axis: int) -> tuple[int, int, int]:
+    """``(up, h0, h1)``: the up axis and the two horizontal axes, in cyclic order.
+
+    The heading frame, the ground plane and the camera of the tracker all use this order, so
+    that ``(h0, h1, up)`` is a right-handed frame.
+    """
+    return up_axis, (up_axis + 1) % 3, (up_axis + 2) % 3
+
+
 def _vec3(o: Any) -> tuple[float, float, float]:
     a, b, c = (float(x) for x in o)
     return (a, b, c)

@@ -33,17 +33,16 @@ import optimistix as optx
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._texton import (
-    Texton,
+from ._checks import (
     _as_float_array,
     _check_finite,
     _check_mask,
     _check_positive,
-    _check_texton,
     _error_if_nonfinite,
     _float_dtype,
     _sym,
 )
+from ._texton import Texton, _check_texton
 
 __all__ = ["RefineReport", "exact_log_likelihood_segments", "refine_texton"]
 

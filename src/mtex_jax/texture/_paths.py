@@ -30,10 +30,12 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
+from ._model import MotionTexture
+
 __all__ = ["path_cost", "path_of_length", "random_path", "shortest_path"]
 
 
-def _transition_matrix(texture: Any) -> np.ndarray:
+def _transition_matrix(texture: MotionTexture) -> np.ndarray:
     """``M`` as a float64 numpy array, validated (square, finite, non-negative, rows sum to 1)."""
     M = getattr(texture, "M", texture)
     try:
@@ -65,7 +67,7 @@ def _label(name: str, x: Any, n: int) -> int:
     return int(x)
 
 
-def path_cost(texture: Any, path: Any) -> float:
+def path_cost(texture: MotionTexture, path: Any) -> float:
     """Cost ``Σ_m −log M[ℓ_m, ℓ_{m+1}]`` of a path (``inf`` if it uses an absent edge)."""
     M = _transition_matrix(texture)
     p = np.asarray(path, dtype=np.int64)
@@ -93,7 +95,7 @@ _walk_jit = jax.jit(_walk, static_argnums=3)
 
 
 def random_path(
-    key: Array, texture: Any, n_textons: int, *, start: int | None = None
+    key: Array, texture: MotionTexture, n_textons: int, *, start: int | None = None
 ) -> np.ndarray:
     """A random walk of ``n_textons`` labels on the transition matrix (MT §5.2).
 
@@ -172,7 +174,9 @@ def _repeat_self(M: np.ndarray, path: np.ndarray, key: Array) -> np.ndarray:
     return np.repeat(path, 1 + reps.astype(np.int64))
 
 
-def shortest_path(texture: Any, u: int, v: int, *, key: Array | None = None) -> np.ndarray:
+def shortest_path(
+    texture: MotionTexture, u: int, v: int, *, key: Array | None = None
+) -> np.ndarray:
     """Lowest-cost texton path from ``u`` to ``v`` (MT §5.2; SPEC §5).
 
     Dijkstra on the weights ``W_ij = −log M_ij`` for ``i ≠ j`` (``M_ij = 0``: no edge); the
@@ -232,7 +236,7 @@ def _length_dp(log_M: Float[Array, "n n"], u: Array, L: int) -> tuple[Array, Arr
 _length_dp_jit = jax.jit(_length_dp, static_argnums=2)
 
 
-def path_of_length(texture: Any, u: int, v: int, L: int) -> tuple[np.ndarray, float]:
+def path_of_length(texture: MotionTexture, u: int, v: int, L: int) -> tuple[np.ndarray, float]:
     """Most probable path of exactly ``L`` textons from ``u`` to ``v`` (MT §5.3; SPEC §5).
 
     Maximises ``Σ_{m=1}^{L−1} log M[ℓ_m, ℓ_{m+1}]`` subject to ``ℓ_1 = u``, ``ℓ_L = v`` (self

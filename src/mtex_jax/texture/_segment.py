@@ -36,7 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._texton import SegmentScorer, Texton, _segment_scores_impl, segment_scores
+from ._scores import SegmentScorer, _segment_scores_impl, segment_scores
+from ._texton import Texton
 
 __all__ = ["Segmentation", "segment", "segment_scorer", "viterbi_segments"]
 

@@ -40,11 +40,11 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..motion import Motion
-from ._paths import path_of_length, random_path, shortest_path
+from ._keyposes import _instances, _successor
+from ._model import MotionTexture
+from ._paths import random_path
 from ._synthesis import Weighting, _constrained, _standard_normal
-from ._texton import Texton, frame_terms, init_terms
-
-__all__ = ["Synthesis", "choreograph", "match_texton", "synthesize"]
+from ._texton import Texton
 
 _PAD_TEXTONS = 8  # the path axis is padded to a multiple of this (compilation sharing)
 _PAD_FRAMES = 16  # and the per-texton length to a multiple of this
@@ -90,9 +90,7 @@ class Synthesis(eqx.Module):
 # --------------------------------------------------------------------------------------------
 
 
-def _check_texture(texture: Any) -> None:
-    from ._learn import MotionTexture
-
+def _check_texture(texture: MotionTexture) -> None:
     if not isinstance(texture, MotionTexture):
         raise TypeError(f"expected a MotionTexture, got {type(texture).__name__}")
     labels = np.asarray(texture.key_pose_labels)
@@ -134,132 +132,6 @@ def _check_pair(name: str, pose: Any, D: int) -> np.ndarray:
     if not np.isfinite(p).all():
         raise ValueError(f"{name} contains NaN or inf")
     return p
-
-
-def _next_segments(texture: Any) -> np.ndarray:
-    """Index of the training segment directly after each segment (``-1`` at a clip end)."""
-    segs = np.asarray(texture.segments)
-    nxt = np.full(segs.shape[0], -1, dtype=np.int64)
-    if segs.shape[0] > 1:
-        follows = (segs[1:, 0] == segs[:-1, 0]) & (segs[1:, 1] == segs[:-1, 1] + segs[:-1, 2])
-        nxt[:-1] = np.where(follows, np.arange(1, segs.shape[0]), -1)
-    return nxt
-
-
-def _chain_costs(kp: np.ndarray, nxt: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``(|a|, |b|)`` cost of key-pose instance ``b`` following instance ``a``.
-
-    Texton ``ℓ_m`` is synthesised from the key poses of its instance ``a`` (a training
-    segment) to the key poses of the next instance ``b`` in ``len(a)`` frames. In the training
-    clip, segment ``a`` led to the two frames after it, ``K_next(a)``; the cost is the squared
-    distance ``‖K_next(a) − K_b‖²`` of those frames to the key poses asked for (0 when ``b`` is
-    the segment that really followed ``a``: the texton repeats a transition it was trained
-    on). Where ``a`` ends a clip, nothing is known and the cost is the largest of the others.
-
-    ``kp``: ``(n_seg, 2D)`` key poses, centred (the expanded squared distance below then
-    cancels less); ``nxt``: :func:`_next_segments`.
-    """
-    nxt = nxt[a]
-    has = nxt >= 0
-    cost = np.zeros((a.size, b.size))
-    if has.any():
-        x, y = kp[nxt[has]], kp[b]
-        d2 = (x * x).sum(1)[:, None] + (y * y).sum(1)[None, :] - 2.0 * (x @ y.T)
-        d2 = np.maximum(d2, 0.0)
-        d2[nxt[has][:, None] == b[None, :]] = 0.0  # exact zero for the true successor
-        cost[has] = d2
-        cost[~has] = d2.max()
-    return cost
-
-
-def _key_pair_jumps(texture: Any) -> np.ndarray:
-    """``(n_seg,)`` jump inside every key-pose pair: the largest displacement of a joint between
-    its two frames (decoded with the texture's feature map), or ``‖K[1] − K[0]‖`` in
-    observation space for a texture learned from raw arrays."""
-    kp = np.asarray(texture.key_poses, dtype=np.float64)
-    fm = texture.feature_map
-    if fm is None:
-        return np.linalg.norm(kp[:, 1] - kp[:, 0], axis=1)
-    # decoding all pairs as one sequence leaves every within-pair jump as it is: the root's
-    # integrated heading and position only move a pair rigidly about the up axis
-    P = np.asarray(fm.joint_positions(kp.reshape(-1, kp.shape[-1])))
-    P = P.reshape(kp.shape[0], 2, -1, P.shape[-1])
-    return np.linalg.norm(P[:, 1] - P[:, 0], axis=-1).max(axis=1)
-
-
-def _usable_key_poses(texture: Any) -> np.ndarray:
-    """``(n_seg,)`` bool: key-pose pairs that are not outliers of the within-pair jump.
-
-    A pair whose jump is beyond Tukey's fence ``q3 + 1.5 (q3 − q1)`` of all pairs' jumps (the
-    usual box-plot outlier rule) and beyond twice their median is a capture glitch or a cut at
-    an abrupt event; held as a constraint, it would put that jump into the synthesised motion
-    at the boundary. (The second bound keeps the moving pairs of a texture whose pairs mostly
-    do not move; with a median of 0 nothing is an outlier.) A pair with a non-finite jump is
-    never usable. The fence is the texture's, not the texton's: the fast starts of a texton
-    count as outliers when they are far faster than the texture's typical pair.
-    """
-    jumps = _key_pair_jumps(texture)
-    finite = np.isfinite(jumps)
-    if not finite.any():
-        return finite
-    q1, med, q3 = np.percentile(jumps[finite], [25.0, 50.0, 75.0])
-    if med <= 0.0:
-        return finite
-    return finite & (jumps <= max(q3 + 1.5 * (q3 - q1), 2.0 * med))
-
-
-def _instances(texture: Any, key: Array | None, path: np.ndarray) -> np.ndarray:
-    """One training segment of texton ``path[m]`` for every ``m`` (index into key_poses).
-
-    The instances are chosen together, as the chain of minimum total cost
-    ``Σ_m cost(a_m, a_{m+1})`` (:func:`_chain_costs`) by dynamic programming (Viterbi over
-    the path positions, O(Σ_m |cand_m|·|cand_{m+1}|)): wherever the training clips contain a
-    segment of ``ℓ_m`` directly followed by one of ``ℓ_{m+1}``, the chain can use that pair,
-    and texton ``m`` then goes from its key poses to the next ones in the number of frames it
-    took in the training data. Exact ties (several chains of equal cost) are broken towards
-    segments of median length without a key and at random with one. Candidates are the
-    texton's usable key poses (:func:`_usable_key_poses`), all of them if it has none.
-    """
-    lab = np.asarray(texture.key_pose_labels)
-    lengths = np.asarray(texture.segment_lengths, dtype=np.float64)
-    usable = _usable_key_poses(texture)
-    cands = [np.flatnonzero(lab == p) for p in path]
-    # outlier key poses only where the texton has nothing else
-    cands = [c[usable[c]] if usable[c].any() else c for c in cands]
-    if key is None:
-        tie = [np.abs(lengths[c] - np.median(lengths[c])) for c in cands]
-    else:
-        u = np.asarray(jax.random.uniform(key, (path.size, max(c.size for c in cands))))
-        tie = [u[m, : c.size] for m, c in enumerate(cands)]
-    kp = np.asarray(texture.key_poses, dtype=np.float64)
-    kp = kp.reshape(kp.shape[0], -1)
-    kp = kp - kp.mean(axis=0)
-    nxt = _next_segments(texture)
-    # Viterbi on (total cost, total tie-break) compared lexicographically
-    acc, acc_tie = np.zeros(cands[0].size), tie[0].astype(np.float64)
-    back = []
-    for m in range(path.size - 1):  # host loop over path positions (textons, not frames)
-        tot = acc[:, None] + _chain_costs(kp, nxt, cands[m], cands[m + 1])
-        arg = np.lexsort((np.broadcast_to(acc_tie[:, None], tot.shape).T, tot.T))[:, 0]
-        back.append(arg)
-        acc = tot[arg, np.arange(tot.shape[1])]
-        acc_tie = acc_tie[arg] + tie[m + 1]
-    out = np.empty(path.size, dtype=np.int64)
-    j = int(np.lexsort((acc_tie, acc))[0])
-    out[-1] = cands[-1][j]
-    for m in range(path.size - 2, -1, -1):
-        j = int(back[m][j])
-        out[m] = cands[m][j]
-    return out
-
-
-def _successor(texture: Any, key: Array | None, label: int) -> int:
-    """A texton drawn from ``M[label, ·]`` (the most probable one without a key)."""
-    row = np.asarray(texture.M, dtype=np.float64)[label]
-    if key is None:
-        return int(np.argmax(row))
-    with np.errstate(divide="ignore"):
-        return int(jax.random.categorical(key, jnp.asarray(np.log(row))))
 
 
 def _check_lengths(lengths: Any, n: int) -> np.ndarray:
@@ -340,7 +212,7 @@ _path_core_jit = eqx.filter_jit(_path_core)
 
 
 def _synthesize_path(
-    texture: Any,
+    texture: MotionTexture,
     key: Array | None,
     path: np.ndarray,
     lengths: np.ndarray,
@@ -395,7 +267,7 @@ def _synthesize_path(
 
 
 def _finish(
-    texture: Any,
+    texture: MotionTexture,
     Y: Array,
     path: np.ndarray,
     lengths: np.ndarray,
@@ -424,7 +296,7 @@ def _finish(
 
 def synthesize(
     key: Array | None,
-    texture: Any,
+    texture: MotionTexture,
     path: ArrayLike | None = None,
     n_frames: int | None = None,
     *,
@@ -542,103 +414,3 @@ def synthesize(
     if start_np is not None:
         seg_out[0] = -1
     return _finish(texture, Y, path_np, lens, seg_out, start_position, start_heading, decode)
-
-
-def match_texton(
-    texture: Any, pose: Float[ArrayLike, "2 D"], *, role: str = "start"
-) -> tuple[int, np.ndarray]:
-    """The texton that best explains a pair of frames at the start or the end of a segment.
-
-    ``role="start"``: the pair as the first two frames of a segment of texton ``i``, scored
-    ``init_i(0) + obs_i(0) + obs_i(1)`` (initial two-state Gaussian plus the residual outside
-    the subspace, SPEC §3). ``role="end"``: the pair as the last two frames, scored by the
-    residual ``obs_i(0) + obs_i(1)`` (a texton's end states have no stored distribution), so
-    the chosen texton's subspace reproduces the pose best.
-
-    Returns:
-        ``(best texton, scores (N_t,))``.
-    """
-    _check_texture(texture)
-    if role not in ("start", "end"):
-        raise ValueError(f"role must be 'start' or 'end', got {role!r}")
-    p = _check_pair("pose", pose, texture.obs_dim)
-    y = jnp.asarray(p, texture.textons.mu.dtype)
-    _, obs = frame_terms(texture.textons, y)
-    score = obs.sum(axis=1)
-    if role == "start":
-        score = score + init_terms(texture.textons, y)[:, 0]
-    score = np.asarray(score)
-    return int(np.argmax(score)), score
-
-
-def choreograph(
-    key: Array | None,
-    texture: Any,
-    start_pose: Float[ArrayLike, "2 D"],
-    end_pose: Float[ArrayLike, "2 D"],
-    n_frames: int | None = None,
-    *,
-    start_position: Float[ArrayLike, 3] | None = None,
-    start_heading: float | None = None,
-    weighting: Weighting = "whitened",
-    residual: Residual = "blend",
-    decode: bool = True,
-) -> Synthesis:
-    """Virtual choreographer (MT Fig. 1): a motion from a start pose to an end pose.
-
-    The start pair is matched to texton ``u`` as the first frames of a segment and the end
-    pair to texton ``v`` as the last frames of one (:func:`match_texton`). The path from ``u``
-    to ``v`` is planned with :func:`path_of_length` when ``n_frames`` is given (``L ≈
-    n_frames / mean segment length`` textons) or with :func:`shortest_path` (plus sampled
-    self-repeats) otherwise. Key poses are chosen for the textons in between as in
-    :func:`synthesize`; the first texton starts at ``start_pose`` and the last one (``v``)
-    is held at ``end_pose`` in its final two frames, so the motion begins and ends at the
-    given poses (each reprojected into its texton's subspace, ``μ + C Cᵀ(y − μ)``). With
-    ``n_frames`` the segment lengths are rescaled to fit exactly.
-
-    Args:
-        texture: a learned :class:`~mtex_jax._learn.MotionTexture`.
-        key: JAX PRNG key, or ``None`` for the deterministic (mean) motion.
-        start_pose: ``(2, D)`` first two frames.
-        end_pose: ``(2, D)`` last two frames.
-        n_frames: total frames, or ``None`` for the lengths that come with the key poses.
-        start_position: ``(3,)`` root position of frame 0 for decoding (default origin).
-        start_heading: root yaw of frame 0 (radians, default 0).
-        weighting: ``"whitened"`` or ``"paper"``.
-        residual: ``"blend"`` or ``"subspace"`` (see :func:`synthesize`).
-        decode: decode to a :class:`Motion`.
-
-    Returns:
-        a :class:`Synthesis` whose first and last two frames are the given poses.
-    """
-    _check_texture(texture)
-    _check_options(weighting, residual)
-    D = texture.obs_dim
-    s_np = _check_pair("start_pose", start_pose, D)
-    e_np = _check_pair("end_pose", end_pose, D)
-    u, _ = match_texton(texture, s_np, role="start")
-    v, _ = match_texton(texture, e_np, role="end")
-    k_path, k_inst, k_noise = jax.random.split(key, 3) if key is not None else (None,) * 3
-    seg_len = np.asarray(texture.segment_lengths, dtype=np.float64)
-    if n_frames is not None:
-        n_frames = _check_n_frames(n_frames)
-        L = max(1, min(round(int(n_frames) / seg_len.mean()), (int(n_frames) - 2) // 2))
-        if u != v and L == 1:
-            L = 2
-        body, _ = path_of_length(texture, u, v, L)
-    else:
-        body = shortest_path(texture, u, v, key=k_path)
-    seg_idx = _instances(texture, k_inst, body)
-    lens = seg_len[seg_idx].astype(np.int64)
-    mins = np.full(body.size, 2)
-    mins[-1] = 4
-    if n_frames is not None:
-        lens = _scale_lengths(lens.astype(np.float64), int(n_frames), mins)
-    else:
-        lens = np.maximum(lens, mins)
-    Y = _synthesize_path(
-        texture, k_noise, body, lens, seg_idx, s_np, e_np, True, weighting, residual
-    )
-    seg_out = seg_idx.copy()
-    seg_out[0] = -1
-    return _finish(texture, Y, body, lens, seg_out, start_position, start_heading, decode)

@@ -3,12 +3,7 @@
 from ._plots import (
     plot_timeline as plot_timeline,
 )
-from ._render import (
-    render_filmstrip as render_filmstrip,
-)
-from ._render import (
-    render_gif as render_gif,
-)
+from ._render import render_filmstrip as render_filmstrip, render_gif as render_gif
 
 __all__ = [
     "plot_timeline",

@@ -1,0 +1,99 @@
+"""``mtex info``, ``mtex render``, ``mtex examples``: looking at motion files."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from ._validators import SOURCE_HELP, read_source
+
+__all__ = ["register"]
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    m = read_source(args.file)
+    sk = m.skeleton
+    n_rot = sum(1 for j in range(sk.n_joints) if sk.rotation_order(j))
+    print(f"file:      {args.file}")
+    print(f"frames:    {m.n_frames}")
+    print(f"fps:       {m.fps:g}")
+    print(f"duration:  {m.duration:.3f} s")
+    print(f"joints:    {sk.n_joints} ({n_rot} rotating, {len(sk.end_sites)} end sites)")
+    print(f"channels:  {sk.n_channels}")
+    print(f"up axis:   {'xyz'[sk.up_axis]}")
+    print(f"size:      {sk.size:.3f} (longest root-to-leaf chain, file units)")
+    if args.joints:
+        print("skeleton:")
+        depth = sk.depth()
+        for j in range(sk.n_joints):
+            order = sk.rotation_order(j) or "-"
+            pos = sk.position_channels(j)
+            extra = f" pos {pos}" if pos else ""
+            print(f"  {'  ' * depth[j]}{sk.names[j]}  [rot {order}{extra}]")
+    return 0
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from ..viz import render_filmstrip, render_gif
+
+    m = read_source(args.file)
+    out = Path(args.output)
+    traj = args.trajectories.split(",") if args.trajectories else None
+    t0 = time.perf_counter()
+    if out.suffix.lower() == ".png":
+        render_filmstrip(m, out, trajectories=traj, title=args.title)
+    else:
+        render_gif(m, out, fps=args.fps, trajectories=traj, title=args.title)
+    print(f"wrote {out} ({m.n_frames} frames, {time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def _cmd_examples(args: argparse.Namespace) -> int:
+    from ..io import example_names, load_example
+
+    for name in example_names():
+        m = load_example(name)
+        print(f"{name:18s} {m.n_frames:5d} frames  {m.fps:5.1f} Hz  {m.duration:6.2f} s")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``info``, ``render`` and ``examples`` to the ``mtex`` sub-command parsers."""
+    s = sub.add_parser(
+        "info",
+        help="describe a motion file",
+        description="Print skeleton, frame rate, number of frames and duration of a motion.",
+    )
+    s.add_argument("file", help=SOURCE_HELP)
+    s.add_argument("--joints", action="store_true", help="also print the joint tree")
+    s.set_defaults(func=_cmd_info)
+
+    s = sub.add_parser(
+        "render",
+        help="render a motion as an animated GIF or a PNG filmstrip",
+        description="Render a stick-figure animation (GIF) or, if the output "
+        "ends in .png, a filmstrip of key frames.",
+    )
+    s.add_argument("file", help=SOURCE_HELP)
+    s.add_argument("-o", "--output", required=True, help="output .gif (animation) or .png")
+    s.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help="playback frame rate of the GIF (default: min(clip fps, 30))",
+    )
+    s.add_argument(
+        "--trajectories",
+        default=None,
+        help="comma-separated joint names whose paths are drawn, e.g. lFoot,rFoot",
+    )
+    s.add_argument("--title", default=None, help="title drawn on the picture")
+    s.set_defaults(func=_cmd_render)
+
+    s = sub.add_parser(
+        "examples",
+        help="list the embedded example clips",
+        description="List the embedded DeepMimic example clips.",
+    )
+    s.set_defaults(func=_cmd_examples)

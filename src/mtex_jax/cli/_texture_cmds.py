@@ -1,0 +1,337 @@
+"""``mtex learn``, ``segment``, ``demo``, ``synth``, ``choreograph``: the Motion Texture."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ._validators import SOURCE_HELP, frames_of_seconds, read_source
+
+__all__ = ["register"]
+
+
+def _cmd_learn(args: argparse.Namespace) -> int:
+    from ..texture import LearnConfig, learn, texture_summary
+
+    t0 = time.perf_counter()
+    motions = [read_source(c) for c in args.clips]
+    fps = args.fps if args.fps is not None else motions[0].fps
+    if args.fps is None and any(m.fps != fps for m in motions):
+        raise ValueError("the clips have different frame rates; choose one with --fps")
+    if args.threshold is not None and args.textons is not None:
+        raise ValueError("give --threshold or --textons, not both")
+    cfg = LearnConfig(
+        tmin=frames_of_seconds(args.tmin, fps, "tmin") or 3,
+        tmax=frames_of_seconds(args.tmax, fps, "tmax"),
+        state_dim=args.state_dim,
+        threshold=args.threshold,
+        n_textons=args.textons,
+        max_iter=args.max_iter,
+        fps=float(fps),
+        min_segments=args.min_segments,
+    )
+    print(
+        f"learning from {len(motions)} clip(s), {sum(m.duration for m in motions):.1f} s of "
+        f"motion at {fps:g} Hz; tmin {cfg.tmin} frames, tmax {cfg.tmax} frames, "
+        f"state dim {cfg.state_dim}",
+        flush=True,
+    )
+    tex = learn(motions, cfg, verbose=not args.quiet)
+    tex.save(args.output)
+    print(texture_summary(tex))
+    print(f"wrote {args.output} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _cmd_segment(args: argparse.Namespace) -> int:
+    from ..texture import load_texture
+    from ..viz import plot_timeline
+
+    tex = load_texture(args.model)
+    if tex.feature_map is None:
+        raise ValueError(
+            f"{args.model} was learned from arrays, not motions; cannot segment a clip"
+        )
+    m = read_source(args.clip)
+    if m.fps != tex.feature_map.fps:
+        m = m.resample(tex.feature_map.fps)
+    seg = tex.segment(m)
+    rows = seg.to_list()
+    fps = tex.feature_map.fps
+    print(
+        f"{args.clip}: {m.n_frames} frames at {fps:g} Hz, {len(rows)} segments, "
+        f"log-likelihood {float(seg.score):.2f}"
+    )
+    print("  start(s)  length(s)  texton")
+    for b, length, lab in rows:
+        print(f"  {b / fps:8.2f}  {length / fps:9.2f}  {lab:6d}")
+    if args.output:
+        plot_timeline(
+            [rows],
+            args.output,
+            fps=fps,
+            n_textons=tex.n_textons,
+            names=[Path(args.clip).stem],
+            title=f"texton labels of {args.clip}",
+        )
+        print(f"wrote {args.output}")
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    """The main job on the embedded default data: learn a texture, synthesise a new dance."""
+    import jax
+
+    from ..io import example_names, load_example, write_bvh
+    from ..texture import LearnConfig, learn, synthesize, texture_summary
+    from ..viz import plot_timeline, render_gif
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    fps = 30.0
+    names = example_names()
+    motions = [load_example(n) for n in names]
+    total = sum(m.duration for m in motions)
+    print(f"embedded clips: {len(names)} ({', '.join(names)}), {total:.1f} s of motion")
+    cfg = LearnConfig(tmin=18, tmax=54, state_dim=6, fps=fps, threshold=args.threshold, max_iter=10)
+    print(
+        f"learning a motion texture at {fps:g} Hz: segments of {cfg.tmin}-{cfg.tmax} frames "
+        f"({cfg.tmin / fps:.1f}-{(cfg.tmax or 0) / fps:.1f} s), state dimension {cfg.state_dim}",
+        flush=True,
+    )
+    tex = learn(motions, cfg, verbose=True)
+    tex.save(out / "texture.npz")
+    print(texture_summary(tex))
+    segs = np.asarray(tex.segments)
+    rows = [
+        [tuple(int(v) for v in r[1:]) for r in segs[segs[:, 0] == s]] for s in range(len(names))
+    ]
+    plot_timeline(
+        rows,
+        out / "timeline.png",
+        fps=fps,
+        n_textons=tex.n_textons,
+        names=names,
+        title="texton labels of the embedded clips (MT Fig. 2)",
+    )
+    n_frames = max(4, round(args.seconds * fps))
+    print(f"synthesising a new dance: {n_frames} frames ({n_frames / fps:.1f} s), seed {args.seed}")
+    new = synthesize(jax.random.key(args.seed), tex, n_frames=n_frames)
+    assert new.motion is not None
+    write_bvh(out / "new_dance.bvh", new.motion)
+    print(
+        f"  texton path {np.asarray(new.path).tolist()}, lengths "
+        f"{np.asarray(new.lengths).tolist()} frames"
+    )
+    render_gif(
+        new.motion,
+        out / "new_dance.gif",
+        trajectories=["left_ankle", "right_ankle"],
+        title=f"synthesised from {tex.n_textons} textons (seed {args.seed})",
+    )
+    print(
+        f"wrote {out / 'texture.npz'}, {out / 'timeline.png'}, {out / 'new_dance.bvh'} and "
+        f"{out / 'new_dance.gif'}"
+    )
+    print(f"done in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _load_model(path: str):
+    from ..texture import load_texture
+
+    tex = load_texture(path)
+    if tex.feature_map is None:
+        raise ValueError(f"{path} was learned from arrays, not motions; it cannot make a BVH")
+    return tex
+
+
+def _write_outputs(syn, out: str, gif: str | None, title: str) -> None:
+    from ..io import write_bvh
+
+    if not str(out).lower().endswith(".bvh"):
+        raise ValueError(f"-o/--output must be a .bvh file, got {out!r}")
+    assert syn.motion is not None
+    write_bvh(out, syn.motion)
+    fps = syn.motion.fps
+    print(
+        f"texton path {np.asarray(syn.path).tolist()}\n"
+        f"lengths (frames) {np.asarray(syn.lengths).tolist()}\n"
+        f"wrote {out} ({syn.n_frames} frames, {syn.n_frames / fps:.2f} s at {fps:g} Hz)"
+    )
+    if gif:
+        from ..viz import render_gif
+
+        render_gif(syn.motion, gif, title=title)
+        print(f"wrote {gif}")
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    import jax
+
+    from ..texture import synthesize
+
+    tex = _load_model(args.model)
+    assert tex.feature_map is not None  # checked by _load_model
+    fps = tex.feature_map.fps
+    n = args.frames if args.frames is not None else round(10.0 * fps)
+    if n < 4:
+        raise ValueError(f"--frames must be >= 4, got {n}")
+    t0 = time.perf_counter()
+    syn = synthesize(jax.random.key(args.seed), tex, n_frames=n)
+    print(
+        f"synthesised {n} frames from {tex.n_textons} textons in {time.perf_counter() - t0:.1f} s"
+    )
+    _write_outputs(syn, args.output, args.gif, f"mtex synth (seed {args.seed})")
+    return 0
+
+
+def _clip_frame(spec: str, tex) -> tuple[np.ndarray, np.ndarray, float]:
+    """``CLIP:FRAME`` -> observation pair (2, D), root position and heading at that frame."""
+    clip, sep, frame_s = spec.rpartition(":")
+    if not sep or not clip:
+        raise ValueError(f"expected CLIP:FRAME (e.g. example:dance_a:10), got {spec!r}")
+    try:
+        frame = int(frame_s)
+    except ValueError:
+        raise ValueError(f"{spec!r}: FRAME must be an integer, got {frame_s!r}") from None
+    m = read_source(clip)
+    fm = tex.feature_map
+    if m.fps != fm.fps:
+        m = m.resample(fm.fps)
+    if not 0 <= frame < m.n_frames - 1:
+        raise ValueError(
+            f"{spec!r}: frame {frame} out of range; the clip has {m.n_frames} frames at "
+            f"{fm.fps:g} Hz (the pose uses frames FRAME and FRAME+1)"
+        )
+    Y = np.asarray(fm.encode(m))
+    pos, heading = fm.start_of(m[frame:])
+    return Y[frame : frame + 2], pos, heading
+
+
+def _cmd_choreograph(args: argparse.Namespace) -> int:
+    import jax
+
+    from ..texture import choreograph
+
+    tex = _load_model(args.model)
+    start, pos, heading = _clip_frame(args.start, tex)
+    end, _, _ = _clip_frame(args.end, tex)
+    t0 = time.perf_counter()
+    syn = choreograph(
+        jax.random.key(args.seed),
+        tex,
+        start,
+        end,
+        n_frames=args.frames,
+        start_position=pos,
+        start_heading=heading,
+    )
+    print(f"choreographed {syn.n_frames} frames in {time.perf_counter() - t0:.1f} s")
+    _write_outputs(syn, args.output, args.gif, f"{args.start} -> {args.end}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the Motion Texture commands to the ``mtex`` sub-command parsers."""
+    s = sub.add_parser(
+        "learn",
+        help="learn a motion texture from clips",
+        description="Learn a motion texture (textons + transition matrix) from motion clips "
+        "by greedy initialisation and EM (MT §4).",
+    )
+    s.add_argument("clips", nargs="+", help=SOURCE_HELP + "; one or more")
+    s.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    s.add_argument("--tmin", type=float, default=1.0, help="shortest segment, seconds (default 1)")
+    s.add_argument("--tmax", type=float, default=3.0, help="longest segment, seconds (default 3)")
+    s.add_argument("--state-dim", type=int, default=12, help="texton state dimension (default 12)")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="greedy-initialisation error threshold (default 0.3)",
+    )
+    g.add_argument(
+        "--textons", type=int, default=None, help="search the threshold for about N textons"
+    )
+    s.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help="resample the clips to this frame rate first (default: theirs)",
+    )
+    s.add_argument("--max-iter", type=int, default=20, help="most EM iterations (default 20)")
+    s.add_argument(
+        "--min-segments",
+        type=int,
+        default=1,
+        help="prune textons with fewer training segments (default 1: no pruning)",
+    )
+    s.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
+    s.set_defaults(func=_cmd_learn)
+
+    s = sub.add_parser(
+        "segment",
+        help="segment a clip with a learned motion texture",
+        description="Print the texton labels of a clip over time (and plot them, MT Fig. 2).",
+    )
+    s.add_argument("model", help="a model file written by 'mtex learn'")
+    s.add_argument("clip", help=SOURCE_HELP)
+    s.add_argument("-o", "--output", default=None, help="timeline picture to write (.png)")
+    s.set_defaults(func=_cmd_segment)
+
+    s = sub.add_parser(
+        "demo",
+        help="run the main job on the embedded default data",
+        description="Learn a motion texture from the embedded DeepMimic clips, then "
+        "synthesise a new dance from it: writes the model, a texton timeline, the new dance "
+        "as BVH and as an animated GIF.",
+    )
+    s.add_argument("--out", default="out", help="output folder (default: out)")
+    s.add_argument(
+        "--seconds", type=float, default=10.0, help="length of the new dance (default 10)"
+    )
+    s.add_argument("--seed", type=int, default=0, help="random seed of the synthesis (default 0)")
+    s.add_argument(
+        "--threshold",
+        type=float,
+        default=0.3,
+        help="greedy-initialisation threshold (default 0.3)",
+    )
+    s.set_defaults(func=_cmd_demo)
+
+    s = sub.add_parser(
+        "synth",
+        help="synthesise a new motion from a learned texture",
+        description="Random texton path, key poses, constrained synthesis of every texton "
+        "(MT §5); writes BVH and optionally an animated GIF.",
+    )
+    s.add_argument("model", help="a model file written by 'mtex learn' or 'mtex demo'")
+    s.add_argument("-o", "--output", required=True, help="BVH file to write")
+    s.add_argument("--frames", type=int, default=None, help="frames to make (default 10 s)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--gif", default=None, help="also render an animated GIF here")
+    s.set_defaults(func=_cmd_synth)
+
+    s = sub.add_parser(
+        "choreograph",
+        help="make a motion from a start pose to an end pose (virtual choreographer)",
+        description="Match the start and end poses to textons, plan a texton path between "
+        "them and synthesise it (MT Fig. 1). Poses are CLIP:FRAME, e.g. example:dance_a:10 "
+        "or salsa.bvh:120 (frames counted at the model's frame rate).",
+    )
+    s.add_argument("model", help="a model file written by 'mtex learn' or 'mtex demo'")
+    s.add_argument("--start", required=True, help="start pose, CLIP:FRAME")
+    s.add_argument("--end", required=True, help="end pose, CLIP:FRAME")
+    s.add_argument("-o", "--output", required=True, help="BVH file to write")
+    s.add_argument(
+        "--frames", type=int, default=None, help="total frames (default: planned lengths)"
+    )
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--gif", default=None, help="also render an animated GIF here")
+    s.set_defaults(func=_cmd_choreograph)

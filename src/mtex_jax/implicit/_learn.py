@@ -1,0 +1,155 @@
+"""Building the implicit model (IP §4, SPEC §7): the database of motion windows, their PCA and
+the sign tree, from training clips.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..motion import FeatureMap, Motion
+from ._model import ImplicitModel
+from ._tree import _codes_np, _right_svd
+from ._windows import _MAX_BITS, _check_motion_values, _window_view, pose_vectors, velocity_channels
+
+
+def learn(
+    motions: Motion | Sequence[Motion],
+    window: int,
+    *,
+    fps: float | None = None,
+    n_components: int | None = None,
+    max_components: int | None = None,
+    feature_map: FeatureMap | None = None,
+    min_std: float = 1e-8,
+) -> ImplicitModel:
+    """Build the database and its sign tree from training clips (IP §4, SPEC §7).
+
+    Args:
+        motions: one clip or a list (same skeleton); windows never straddle two clips.
+        window: ``d``, pose vectors per window (the paper: ``d = 10`` at 30 Hz ≈ 1/3 s).
+        fps: resample every clip to this rate first (default: keep; clips must agree).
+        n_components: ``b``; default ``⌊log₂ n⌋``. Always capped by the window dimension
+            and the numerical rank of the windows.
+        max_components: optional further cap on ``b`` (at most 30: codes are int32).
+        feature_map: observation map to use (default ``FeatureMap.fit(motions)``).
+        min_std: floor on each parameter's ``γ`` (relative to the largest ``γ``).
+
+    Returns:
+        the model (``summary()`` reports ``b``, the explained variance and leaf sizes).
+
+    Raises:
+        ValueError: empty database, a clip shorter than ``window + 2`` frames, non-finite
+            poses, ``window < 1``, bad component counts, mismatched frame rates.
+    """
+    if isinstance(motions, Motion):
+        motions = [motions]
+    motions = list(motions)
+    if not motions:
+        raise ValueError("ImplicitModel.build: empty database (no motions given)")
+    for i, m in enumerate(motions):
+        if not isinstance(m, Motion):
+            raise TypeError(f"ImplicitModel.build: item {i} is {type(m).__name__}, not Motion")
+    if isinstance(window, bool) or not isinstance(window, int | np.integer) or window < 1:
+        raise ValueError(f"ImplicitModel.build: window must be an integer ≥ 1, got {window!r}")
+    d = int(window)
+    for i, m in enumerate(motions):
+        _check_motion_values(m, f"ImplicitModel.build: motion {i}")
+    if fps is not None:
+        motions = [m if m.fps == fps else m.resample(fps) for m in motions]
+    for i, m in enumerate(motions):
+        if m.n_frames < d + 2:
+            raise ValueError(
+                f"ImplicitModel.build: window ({d} pose vectors) is longer than motion {i} "
+                f"allows: it has {m.n_frames} frames, a window plus its successor needs "
+                f"at least {d + 2}"
+            )
+    if feature_map is None:
+        fm = FeatureMap.fit(motions)
+    else:
+        fm = feature_map
+        for m in motions:
+            fm._check_motion(m)
+    for arg, name in ((n_components, "n_components"), (max_components, "max_components")):
+        if arg is not None and (not isinstance(arg, int | np.integer) or arg < 1):
+            raise ValueError(f"ImplicitModel.build: {name} must be a positive integer")
+
+    psis = [pose_vectors(fm, m) for m in motions]
+    allpsi = np.concatenate(psis, axis=0)
+    if not np.all(np.isfinite(allpsi)):
+        raise ValueError("ImplicitModel.build: non-finite pose vectors")
+    gamma = allpsi.std(axis=0)
+    gamma = np.maximum(gamma, min_std * max(float(gamma.max()), 1e-300))
+    p = allpsi.shape[1]
+    vel_ch = np.asarray(velocity_channels(fm), dtype=np.int64)
+
+    wins, succ, clip_idx, frame_idx, sizes, accs = [], [], [], [], [], []
+    for c, psi in enumerate(psis):
+        # rows k of psi = frame k+1; window ending at row k needs k+1 < len(psi)
+        v = _window_view(psi / gamma, d)[:-1]  # drop the window without a successor
+        wins.append(v.reshape(v.shape[0], -1))
+        succ.append(psi[d:])
+        clip_idx.append(np.full(v.shape[0], c))
+        frame_idx.append(np.arange(v.shape[0]) + d)  # newest row d-1+j = frame d+j
+        sizes.append(int(v.shape[0]))
+        y = psi[:, : p // 2]
+        if y.shape[0] >= 3:
+            dd = y[2:] - 2 * y[1:-1] + y[:-2]
+            dd[:, vel_ch] = (y[2:] - y[1:-1])[:, vel_ch]
+            accs.append(dd)
+    windows = np.concatenate(wins, axis=0)
+    n, w = windows.shape
+    if n < 2:
+        raise ValueError(f"ImplicitModel.build: database too small ({n} window), need ≥ 2")
+    acc = np.concatenate(accs, axis=0) if accs else np.zeros((1, p // 2))
+    acc_std = np.maximum(acc.std(axis=0), 1e-12)
+
+    mean = windows.mean(axis=0)
+    x = windows - mean
+    s, vt = _right_svd(x)
+    rank = int(np.sum(s > s[0] * 1e-10)) if s[0] > 0 else 0
+    if rank == 0:
+        raise ValueError("ImplicitModel.build: all windows are identical")
+    b = math.floor(math.log2(n)) if n_components is None else int(n_components)
+    b = min(b, w, rank, _MAX_BITS)
+    if max_components is not None:
+        b = min(b, int(max_components))
+    b = max(b, 1)
+    basis = vt[:b].T.copy()
+    # fix the SVD's sign ambiguity: largest-magnitude loading of each direction positive
+    flip = np.sign(basis[np.argmax(np.abs(basis), axis=0), np.arange(b)])
+    basis = basis * np.where(flip == 0, 1.0, flip)
+    coeffs = x @ basis
+    sigma = coeffs.std(axis=0)
+    explained = float(np.sum(s[:b] ** 2) / np.sum(s**2))
+    codes = _codes_np(coeffs)
+    order = np.argsort(codes, kind="stable").astype(np.int32)
+    leaf_max = int(np.bincount(codes).max())
+
+    dtype = np.result_type(*[np.asarray(m.rotations).dtype for m in motions], np.float32)
+    f = lambda a: jnp.asarray(np.asarray(a, dtype=dtype))
+    i32 = lambda a: jnp.asarray(np.asarray(a, dtype=np.int32))
+    return ImplicitModel(
+        feature_map=fm,
+        window=d,
+        n_components=b,
+        leaf_max=leaf_max,
+        explained_variance=explained,
+        clip_sizes=tuple(sizes),
+        gamma=f(gamma),
+        mean=f(mean),
+        basis=f(basis),
+        sigma=f(sigma),
+        windows=f(windows),
+        successors=f(np.concatenate(succ, axis=0)),
+        codes=i32(codes),
+        order=i32(order),
+        sorted_codes=i32(codes[order]),
+        sorted_coeffs=f(coeffs[order]),
+        clip_index=i32(np.concatenate(clip_idx)),
+        frame_index=i32(np.concatenate(frame_idx)),
+        acceleration_std=f(acc_std),
+    )

@@ -1,0 +1,214 @@
+"""Input checks and small numerical helpers shared by the texture modules (dtype, finiteness,
+shapes, symmetric eigendecomposition and PSD Cholesky with floors)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+from jax import lax
+from jaxtyping import Array
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+# --------------------------------------------------------------------------------------------
+# Input validation (eager, before tracing)
+# --------------------------------------------------------------------------------------------
+
+
+def _float_dtype(*xs: Any) -> Any:
+    dtype = jnp.result_type(*xs)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        dtype = jnp.result_type(float)
+    return dtype
+
+
+def _as_float_array(name: str, x: Any, ndims: tuple[int, ...], shape_doc: str) -> Array:
+    if x is None:
+        raise ValueError(f"{name} must be an array of shape {shape_doc}, got None")
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+        raise ValueError(f"{name} must be real, got dtype {x.dtype}")
+    if x.ndim not in ndims:
+        raise ValueError(f"{name} must have shape {shape_doc}, got shape {tuple(x.shape)}")
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(_float_dtype(x))
+    return x
+
+
+def _check_finite(name: str, x: Array) -> None:
+    """Eagerly reject NaN/inf when ``x`` is concrete (inside a trace, ``eqx.error_if`` acts)."""
+    try:
+        xn = np.asarray(x)
+    except jax.errors.TracerArrayConversionError:
+        return
+    finite = np.isfinite(xn)
+    if not finite.all():
+        bad = tuple(int(i) for i in np.argwhere(~finite)[0])
+        raise ValueError(f"{name} (shape {xn.shape}) contains NaN or inf, first at index {bad}")
+
+
+def _error_if_nonfinite(x: Array, name: str) -> Array:
+    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or inf")
+
+
+def _check_obs(name: str, Y: Any, D: int, min_len: int = 1) -> Array:
+    Y = _as_float_array(name, Y, (2,), "(T, D)")
+    if Y.shape[1] != D:
+        raise ValueError(f"{name} has shape {tuple(Y.shape)} but the texton expects D={D} columns")
+    if Y.shape[0] < min_len:
+        raise ValueError(f"{name} needs at least {min_len} frames, got shape {tuple(Y.shape)}")
+    _check_finite(name, Y)
+    return Y
+
+
+def _check_mask(mask: Any, lead_shape: tuple[int, ...]) -> Array:
+    if mask is None:
+        return jnp.asarray(np.zeros(lead_shape, dtype=np.int32))
+    try:  # concrete masks are normalised with numpy (no per-shape XLA compilation)
+        mask_np = np.asarray(mask)
+    except jax.errors.TracerArrayConversionError:
+        mask_np = None
+    if mask_np is not None:
+        if mask_np.shape != lead_shape:
+            raise ValueError(
+                f"mask must have shape {lead_shape} (the leading shape of Y), got {mask_np.shape}"
+            )
+        if mask_np.dtype == np.bool_:
+            return jnp.asarray(np.where(mask_np, 0, -1).astype(np.int32))
+        if not np.issubdtype(mask_np.dtype, np.integer):
+            raise ValueError(
+                f"mask must be an integer segment-id array (-1 = unused frame) or boolean, "
+                f"got dtype {mask_np.dtype}"
+            )
+        return jnp.asarray(mask_np.astype(np.int32))
+    mask = jnp.asarray(mask)
+    if tuple(mask.shape) != lead_shape:
+        raise ValueError(
+            f"mask must have shape {lead_shape} (the leading shape of Y), got {tuple(mask.shape)}"
+        )
+    if mask.dtype == jnp.bool_:
+        return jnp.where(mask, 0, -1).astype(jnp.int32)
+    if not jnp.issubdtype(mask.dtype, jnp.integer):
+        raise ValueError(
+            f"mask must be an integer segment-id array (-1 = unused frame) or boolean, "
+            f"got dtype {mask.dtype}"
+        )
+    # one dtype for every caller, so that int32/int64 masks do not trigger a recompilation
+    return mask.astype(jnp.int32)
+
+
+def _check_positive(name: str, value: Any, allow_zero: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real number, got {value!r}") from None
+    if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
+    return v
+
+
+def _check_state_dim(state_dim: Any, D: int, shape: tuple[int, ...]) -> int:
+    if isinstance(state_dim, bool) or not isinstance(state_dim, int | np.integer):
+        raise ValueError(f"state_dim must be an int, got {state_dim!r}")
+    k = int(state_dim)
+    if not 1 <= k <= D:
+        raise ValueError(
+            f"state_dim={k} must satisfy 1 <= state_dim <= D={D} (Y has shape {shape}); "
+            "C needs k orthonormal columns in R^D"
+        )
+    return k
+
+
+# --------------------------------------------------------------------------------------------
+# Linear-algebra helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _sym(M: Array) -> Array:
+    return 0.5 * (M + jnp.swapaxes(M, -1, -2))
+
+
+def _fix_signs(V: Array) -> Array:
+    """Flip eigenvector columns so that each column's largest-magnitude entry is positive."""
+    idx = jnp.argmax(jnp.abs(V), axis=0)
+    s = jnp.sign(V[idx, jnp.arange(V.shape[1])])
+    s = jnp.where(s == 0, 1, s)
+    return V * lax.stop_gradient(s)
+
+
+@jax.custom_jvp
+def _eigh_desc(S: Array) -> tuple[Array, Array]:
+    """Eigen-decomposition of a symmetric matrix, eigenvalues in descending order.
+
+    Sign convention of :func:`_fix_signs`. The JVP is the usual first-order perturbation
+    formula ``dV = V (F ∘ Vᵀ dS V)``, ``F_ij = 1/(λ_j − λ_i)``, except that ``F_ij = 0`` for
+    (numerically) equal eigenvalues, where the eigenvectors are not differentiable. This keeps
+    gradients finite (e.g. for the discarded, degenerate part of a PCA).
+    """
+    w, V = jnp.linalg.eigh(S)
+    return w[::-1], _fix_signs(V[:, ::-1])
+
+
+@_eigh_desc.defjvp
+def _eigh_desc_jvp(primals: tuple[Array], tangents: tuple[Array]) -> Any:
+    (S,) = primals
+    (dS,) = tangents
+    w, V = _eigh_desc(S)
+    M = V.T @ _sym(dS) @ V
+    gap = w[None, :] - w[:, None]
+    scale = jnp.max(jnp.abs(w))
+    tol = 16 * jnp.finfo(S.dtype).eps * S.shape[0] * scale + jnp.finfo(S.dtype).tiny
+    safe = jnp.abs(gap) > tol
+    F = jnp.where(safe, 1.0 / jnp.where(safe, gap, 1.0), 0.0)
+    return (w, V), (jnp.diagonal(M), V @ (F * M))
+
+
+def _psd_cholesky(M: Array, floor: Array | float) -> Array:
+    """Lower Cholesky factor of ``sym(M) + floor·I`` for a covariance estimate ``M``.
+
+    ``M`` is positive semi-definite in exact arithmetic (a covariance estimate), so
+    ``sym(M) + floor·I`` is positive definite for ``floor > 0``; if rounding nevertheless makes
+    the factorisation fail (NaN), the factor of ``sym(M) + (floor + √eps·mean|diag M|)·I`` is
+    returned instead. The extra jitter is far larger than the rounding error of a PSD
+    covariance (``O(n·eps·‖M‖)``). If even that fails (heavy cancellation, e.g. float32 sums
+    of a short segment), the jitter is raised to the Gershgorin bound
+    ``max_i(Σ_{j≠i}|M_ij| − M_ii)``, which makes the matrix strictly diagonally dominant and
+    hence positive definite, so the result is always finite (no LAPACK call is needed for it).
+    """
+    M = _sym(M)
+    n = M.shape[-1]
+    eye = jnp.eye(n, dtype=M.dtype)
+    L = jnp.linalg.cholesky(M + floor * eye)
+    finfo = jnp.finfo(M.dtype)
+    scale = jnp.maximum(jnp.mean(jnp.abs(jnp.diagonal(M))), finfo.tiny)
+    j2 = floor + jnp.sqrt(finfo.eps) * scale
+    L2 = jnp.linalg.cholesky(M + j2 * eye)
+    diag = jnp.diagonal(M)
+    gersh = jnp.max(jnp.sum(jnp.abs(M), axis=-1) - jnp.abs(diag) - diag)
+    L3 = jnp.linalg.cholesky(M + (j2 + jnp.maximum(gersh, 0.0) * (1 + 1e-3)) * eye)
+    return jnp.where(jnp.all(jnp.isfinite(L)), L, jnp.where(jnp.all(jnp.isfinite(L2)), L2, L3))
+
+
+def _gauss_logpdf_chol(r: Array, L: Array) -> Array:
+    """``log N(r; 0, L Lᵀ)`` for residual vectors ``r (..., n)``."""
+    n = L.shape[-1]
+    u = jsl.solve_triangular(L, jnp.moveaxis(r, -1, 0).reshape(n, -1), lower=True)
+    maha = jnp.sum(u * u, axis=0).reshape(r.shape[:-1])
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(L)))
+    return -0.5 * (n * _LOG_2PI + logdet + maha)
+
+
+def _check_positive_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be >= 1, got {value}")
+    return int(value)

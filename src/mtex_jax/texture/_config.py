@@ -1,0 +1,93 @@
+"""The settings of learning a motion texture (:class:`LearnConfig`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+
+@dataclasses.dataclass(frozen=True)
+class LearnConfig:
+    """Settings of :func:`learn` (lengths in frames).
+
+    Attributes:
+        tmin: shortest segment (frames, ``>= 3``); the paper uses about 1 s.
+        tmax: longest segment (frames); ``None`` = unbounded (paper-exact, ``O(T²)``).
+        state_dim: texton state dimension ``k`` (the paper: 12–15).
+        threshold: greedy-initialisation error threshold (squared one-step prediction error
+            per observation dimension, in the units of ``Y``: z-units for motions). ``None``:
+            from ``n_textons``, else by BIC over ``bic_thresholds``, else 0.3.
+        n_textons: target number of textons for the threshold search (used when
+            ``threshold`` is ``None``).
+        max_iter: most EM iterations.
+        tol: stop when the objective gains less than ``tol`` per frame.
+        pseudo_count: Dirichlet pseudo-count added to transition and initial counts.
+        fps: resample motions to this frame rate first (``None``: keep; all clips must agree).
+        ridge, q_floor, sigma2_floor, rho_max, init_prior_weight: texton fit regularisation
+            (see :func:`fit_texton`).
+        shard: split sequences across all JAX devices when there is more than one.
+        bic_thresholds: thresholds to choose from by BIC (see :func:`bic_select`).
+        min_segments: prune textons that the segmentation gives fewer training segments: after
+            each E-step they are removed (``M``, ``π`` renormalised) and the clips segmented
+            again by the remaining textons, which EM then refits (a texton fitted on one
+            60-frame segment has unreliable dynamics). ``1`` = no pruning (the paper).
+    """
+
+    tmin: int = 60
+    tmax: int | None = 180
+    state_dim: int = 12
+    threshold: float | None = None
+    n_textons: int | None = None
+    max_iter: int = 20
+    tol: float = 1e-4
+    pseudo_count: float = 0.1
+    fps: float | None = None
+    ridge: float = 1e-6
+    q_floor: float = 1e-6
+    sigma2_floor: float = 1e-6
+    rho_max: float | None = None
+    init_prior_weight: float = 4.0
+    shard: bool = True
+    bic_thresholds: tuple[float, ...] | None = None
+    min_segments: int = 1
+
+    def __post_init__(self) -> None:
+        if isinstance(self.min_segments, bool) or not isinstance(self.min_segments, int):
+            raise ValueError(
+                f"LearnConfig.min_segments must be a positive integer, got {self.min_segments!r}"
+            )
+        if self.min_segments < 1:
+            raise ValueError(f"LearnConfig.min_segments must be >= 1, got {self.min_segments}")
+        if not isinstance(self.tmin, int) or self.tmin < 3:
+            raise ValueError(f"LearnConfig.tmin must be an integer >= 3, got {self.tmin!r}")
+        if self.tmax is not None and (not isinstance(self.tmax, int) or self.tmax < self.tmin):
+            raise ValueError(
+                f"LearnConfig.tmax must be None or an integer >= tmin = {self.tmin}, "
+                f"got {self.tmax!r}"
+            )
+        if not isinstance(self.state_dim, int) or self.state_dim < 1:
+            raise ValueError(
+                f"LearnConfig.state_dim must be a positive integer, got {self.state_dim!r}"
+            )
+        if self.threshold is not None and not self.threshold > 0:
+            raise ValueError(f"LearnConfig.threshold must be positive, got {self.threshold!r}")
+        if self.n_textons is not None and (
+            not isinstance(self.n_textons, int) or self.n_textons < 1
+        ):
+            raise ValueError(
+                f"LearnConfig.n_textons must be a positive integer, got {self.n_textons!r}"
+            )
+        if not isinstance(self.max_iter, int) or self.max_iter < 0:
+            raise ValueError(f"LearnConfig.max_iter must be >= 0, got {self.max_iter!r}")
+        if not self.pseudo_count > 0:
+            raise ValueError(
+                f"LearnConfig.pseudo_count must be positive, got {self.pseudo_count!r}"
+            )
+        if self.fps is not None and not self.fps > 0:
+            raise ValueError(f"LearnConfig.fps must be positive, got {self.fps!r}")
+
+    def to_json_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        if d["bic_thresholds"] is not None:
+            d["bic_thresholds"] = list(d["bic_thresholds"])
+        return d

@@ -1,0 +1,167 @@
+"""Greedy initialisation of textons (MT §4.2): grow textons from windows the current bank
+predicts worst."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._config import LearnConfig
+from ._fit import fit_texton
+from ._texton import Texton, stack_textons
+
+# ---------------------------------------------------------------------------------------------
+# Segment lists: numpy arrays (seq, start, length, label), one row per segment, in time order
+# ---------------------------------------------------------------------------------------------
+Segs = np.ndarray  # (n, 4) int64
+
+
+def _feasible(n: int, tmin: int, tmax: int) -> bool:
+    """Whether ``n`` frames split into pieces of lengths in ``[tmin, tmax]`` (0 is fine)."""
+    if n == 0:
+        return True
+    k = -(-n // tmax)  # fewest pieces
+    return k * tmin <= n
+
+
+# ---------------------------------------------------------------------------------------------
+# Greedy initialisation
+# ---------------------------------------------------------------------------------------------
+@eqx.filter_jit
+def _prediction_errors(tex: Texton, Y: Float[Array, "L D"]) -> Float[Array, "n L"]:
+    """Per-frame one-step prediction error ``‖y_t − μ − C(A1 x_{t−1} + A2 x_{t−2} + d)‖² / D``.
+
+    ``tex`` may be stacked (leading axis ``n``); frames 0 and 1 get 0.
+    """
+
+    def one(t: Texton) -> Array:
+        X = (Y - t.mu) @ t.C
+        pred = X[1:-1] @ t.A1.T + X[:-2] @ t.A2.T + t.d
+        yhat = t.mu + pred @ t.C.T
+        e = jnp.sum((Y[2:] - yhat) ** 2, axis=1) / Y.shape[1]
+        return jnp.concatenate([jnp.zeros((2,), Y.dtype), e])
+
+    if tex.mu.ndim == 1:
+        return one(tex)[None]
+    return jax.vmap(one)(tex)
+
+
+class _Bank:
+    """Textons found so far, stacked with a doubling capacity (few recompilations)."""
+
+    def __init__(self) -> None:
+        self.items: list[Texton] = []
+        self._stack: Texton | None = None
+        self._cap = 0
+
+    def add(self, t: Texton) -> int:
+        self.items.append(t)
+        self._stack = None
+        return len(self.items) - 1
+
+    def stacked(self) -> Texton:
+        if self._stack is None:
+            n = len(self.items)
+            self._cap = max(self._cap, 1)
+            while self._cap < n:
+                self._cap *= 2
+            padded = self.items + [self.items[-1]] * (self._cap - n)
+            self._stack = stack_textons(padded)
+        return self._stack
+
+
+def greedy_init(
+    ys: Sequence[np.ndarray], config: LearnConfig, threshold: float, *, smooth: int = 3
+) -> tuple[Segs, int]:
+    """Greedy segmentation of MT §4.
+
+    For each sequence, from frame ``b``: test every texton found so far on the next ``tmin``
+    frames and take the one with the lowest mean prediction error if that is at most
+    ``threshold``; otherwise fit a new texton on those frames. Then extend the segment frame by
+    frame while that texton's prediction error (averaged over the last ``smooth`` frames) stays
+    at most ``threshold`` (never beyond ``tmax``, and never leaving a remainder that cannot be
+    segmented). The error of frame ``t`` is ``‖y_t − μ − C(A1 x_{t−1} + A2 x_{t−2} + d)‖² / D``.
+
+    Returns:
+        ``(segments, n_textons)``; segments as rows ``(seq, start, length, label)``.
+    """
+    tmin = config.tmin
+    rows: list[tuple[int, int, int, int]] = []
+    bank = _Bank()
+    for s, y in enumerate(ys):
+        T = y.shape[0]
+        tmax = T if config.tmax is None else config.tmax
+        yj = jnp.asarray(y)
+        b = 0
+        while b < T:
+            win = yj[b : b + tmin]
+            label = -1
+            if bank.items:
+                err = np.asarray(_prediction_errors(bank.stacked(), win))[: len(bank.items)]
+                mean_err = err[:, 2:].mean(axis=1)
+                best = int(np.argmin(mean_err))
+                if mean_err[best] <= threshold:
+                    label = best
+            if label < 0:
+                label = bank.add(
+                    fit_texton(
+                        win,
+                        state_dim=config.state_dim,
+                        ridge=config.ridge,
+                        q_floor=config.q_floor,
+                        sigma2_floor=config.sigma2_floor,
+                        rho_max=config.rho_max,
+                        init_prior_weight=config.init_prior_weight,
+                    )
+                )
+            # extend while the running mean error stays below the threshold
+            hi = min(b + tmax, T)
+            span = np.zeros((tmax, y.shape[1]), y.dtype)
+            span[: hi - b] = y[b:hi]
+            e_t = np.asarray(_prediction_errors(bank.items[label], jnp.asarray(span)))[0]
+            e_t = e_t[: hi - b]
+            # local error: mean over the last `smooth` frames (robust to a single noisy frame,
+            # but sharp at a change of dynamics, unlike a running mean over the whole segment)
+            loc = np.convolve(e_t, np.ones(smooth) / smooth, mode="full")[: hi - b]
+            length = tmin
+            while length < hi - b and loc[length] <= threshold:
+                length += 1
+            # keep the rest segmentable
+            if not _feasible(T - b - length, tmin, tmax):
+                cands = [L for L in range(tmin, hi - b + 1) if _feasible(T - b - L, tmin, tmax)]
+                length = min(cands, key=lambda L: (abs(L - length), L))
+            rows.append((s, b, length, label))
+            b += length
+    return np.asarray(rows, dtype=np.int64).reshape(-1, 4), len(bank.items)
+
+
+def threshold_for_textons(
+    ys: Sequence[np.ndarray], config: LearnConfig, n_textons: int, *, iters: int = 18
+) -> tuple[float, Segs, int]:
+    """Bisection on the (log) threshold for a greedy initialisation with ``n_textons`` textons.
+
+    Returns the threshold, its segmentation and the number of textons it gives (the closest
+    to the request that the search found; ties prefer more textons).
+    """
+    lo, hi = math.log(1e-5), math.log(1e3)
+    best: tuple[int, float, Segs, int] | None = None
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        segs, n = greedy_init(ys, config, math.exp(mid))
+        score = abs(n - n_textons)
+        if best is None or score < best[0] or (score == best[0] and n > best[3]):
+            best = (score, math.exp(mid), segs, n)
+        if n == n_textons:
+            break
+        if n > n_textons:
+            lo = mid
+        else:
+            hi = mid
+    assert best is not None
+    return best[1], best[2], best[3]

@@ -1,0 +1,199 @@
+"""The learned motion texture (MT §3): textons, the transition matrix and the metadata needed to
+encode and decode motion, with its model file (``.npz`` arrays + JSON metadata, never
+unpickled)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ..internal import load_arrays_json, save_arrays_json
+from ..motion import FeatureMap, Motion
+from ._config import LearnConfig
+from ._segment import Segmentation, segment
+from ._texton import Texton
+
+FORMAT_VERSION = 1
+_KIND = "mtex_jax.MotionTexture"
+
+
+# ---------------------------------------------------------------------------------------------
+# The model
+# ---------------------------------------------------------------------------------------------
+class MotionTexture(eqx.Module):
+    """A learned motion texture: textons, their transition matrix and statistics.
+
+    Attributes:
+        textons: stacked :class:`Texton` (leading axis ``N_t``).
+        M: ``(N_t, N_t)`` transition matrix, rows sum to 1 (``M[l, i] = P(i | l)``).
+        pi: ``(N_t,)`` initial texton distribution.
+        key_poses: ``(n_seg, 2, D)`` first two frames of every training segment.
+        key_pose_labels: ``(n_seg,)`` texton of each key pose pair.
+        segment_lengths: ``(n_seg,)`` length of every training segment.
+        segments: ``(n_seg, 4)`` training segmentation rows ``(seq, start, length, label)``.
+        history: ``(n_iter, 2)`` per EM iteration: objective after the M-step and after the
+            E-step (log-likelihood of the segmentation).
+        feature_map: the :class:`FeatureMap` of the training clips (``None`` for raw arrays).
+        config: the :class:`LearnConfig` (static).
+        threshold: the greedy-initialisation threshold used (static).
+    """
+
+    textons: Texton
+    M: Float[Array, "n n"]
+    pi: Float[Array, " n"]
+    key_poses: Float[Array, "s 2 D"]
+    key_pose_labels: Int[Array, " s"]
+    segment_lengths: Int[Array, " s"]
+    segments: Int[Array, "s 4"]
+    history: Float[Array, "it 2"]
+    feature_map: FeatureMap | None
+    config: LearnConfig = eqx.field(static=True)
+    threshold: float = eqx.field(static=True)
+
+    def __check_init__(self) -> None:
+        n = self.textons.n_textons if self.textons.is_stacked else 1
+        if np.shape(self.M) != (n, n):
+            raise ValueError(f"MotionTexture.M must have shape ({n}, {n}), got {np.shape(self.M)}")
+        if np.shape(self.pi) != (n,):
+            raise ValueError(f"MotionTexture.pi must have shape ({n},), got {np.shape(self.pi)}")
+        s = np.shape(self.key_pose_labels)[0]
+        if np.shape(self.key_poses)[:2] != (s, 2):
+            raise ValueError("MotionTexture.key_poses must have shape (n_seg, 2, D)")
+        if np.shape(self.segments) != (s, 4) or np.shape(self.segment_lengths) != (s,):
+            raise ValueError("MotionTexture.segments / segment_lengths disagree with key poses")
+
+    @property
+    def n_textons(self) -> int:
+        return int(np.shape(self.M)[0])
+
+    @property
+    def obs_dim(self) -> int:
+        return int(np.shape(self.textons.mu)[-1])
+
+    def length_stats(self) -> np.ndarray:
+        """Per texton: ``(count, mean, std, min, max)`` of its training segment lengths."""
+        out = np.zeros((self.n_textons, 5))
+        lab = np.asarray(self.key_pose_labels)
+        ln = np.asarray(self.segment_lengths)
+        for i in range(self.n_textons):
+            li = ln[lab == i]
+            if li.size:
+                out[i] = (li.size, li.mean(), li.std(), li.min(), li.max())
+        return out
+
+    def segment(self, Y: Float[Any, "T D"]) -> Segmentation:
+        """Optimal segmentation of observations ``Y (T, D)`` (or a :class:`Motion`)."""
+        if isinstance(Y, Motion):
+            if self.feature_map is None:
+                raise ValueError("this texture was learned from arrays; pass observations Y")
+            Y = self.feature_map.encode(Y)
+        y = jnp.asarray(Y)
+        if y.ndim != 2 or y.shape[1] != self.obs_dim:
+            raise ValueError(f"Y must have shape (T, {self.obs_dim}), got {tuple(y.shape)}")
+        return segment(
+            self.textons,
+            jnp.log(jnp.asarray(self.M)),
+            jnp.log(jnp.asarray(self.pi)),
+            y,
+            self.config.tmin,
+            self.config.tmax,
+        )
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write to a ``.npz`` (arrays) with JSON metadata; no pickle."""
+        arrays: dict[str, Any] = {
+            f"texton.{f.name}": np.asarray(getattr(self.textons, f.name))
+            for f in dataclasses.fields(self.textons)
+        }
+        arrays.update(
+            M=np.asarray(self.M),
+            pi=np.asarray(self.pi),
+            key_poses=np.asarray(self.key_poses),
+            key_pose_labels=np.asarray(self.key_pose_labels),
+            segment_lengths=np.asarray(self.segment_lengths),
+            segments=np.asarray(self.segments),
+            history=np.asarray(self.history),
+        )
+        meta: dict[str, Any] = {
+            "kind": _KIND,
+            "format_version": FORMAT_VERSION,
+            "config": self.config.to_json_dict(),
+            "threshold": self.threshold,
+            "texton_fields": [f.name for f in dataclasses.fields(self.textons)],
+            "feature_map": None,
+        }
+        if self.feature_map is not None:
+            fa, fmeta = self.feature_map.to_arrays_json()
+            arrays.update({f"feature_map.{k}": v for k, v in fa.items()})
+            meta["feature_map"] = fmeta
+        save_arrays_json(path, arrays, meta)
+
+
+_REQUIRED = ("M", "pi", "key_poses", "key_pose_labels", "segment_lengths", "segments", "history")
+
+
+def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
+    """Read a :class:`MotionTexture` written by :meth:`MotionTexture.save`.
+
+    Raises:
+        ValueError: naming the file and the problem (corrupt or truncated archive, another kind
+            of file, unsupported format version, missing or inconsistent arrays).
+    """
+    arrays, meta = load_arrays_json(path, kind=_KIND, required=_REQUIRED)
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise ValueError(
+            f"{path}: format version {meta.get('format_version')!r} is not supported "
+            f"(this mtex_jax reads version {FORMAT_VERSION})"
+        )
+    try:
+        fields = meta["texton_fields"]
+        missing = [f for f in fields if f"texton.{f}" not in arrays]
+        if missing:
+            raise ValueError(f"missing arrays {['texton.' + f for f in missing]}")
+        textons = Texton(**{f: jnp.asarray(arrays[f"texton.{f}"]) for f in fields})
+        fm = None
+        if meta.get("feature_map") is not None:
+            fa = {k.split(".", 1)[1]: v for k, v in arrays.items() if k.startswith("feature_map.")}
+            fm = FeatureMap.from_arrays_json(fa, meta["feature_map"])
+        cfg_d = dict(meta["config"])
+        if cfg_d.get("bic_thresholds") is not None:
+            cfg_d["bic_thresholds"] = tuple(cfg_d["bic_thresholds"])
+        cfg = LearnConfig(**cfg_d)
+        return MotionTexture(
+            textons=textons,
+            M=jnp.asarray(arrays["M"]),
+            pi=jnp.asarray(arrays["pi"]),
+            key_poses=jnp.asarray(arrays["key_poses"]),
+            key_pose_labels=jnp.asarray(arrays["key_pose_labels"]),
+            segment_lengths=jnp.asarray(arrays["segment_lengths"]),
+            segments=jnp.asarray(arrays["segments"]),
+            history=jnp.asarray(arrays["history"]),
+            feature_map=fm,
+            config=cfg,
+            threshold=float(meta["threshold"]),
+        )
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: invalid motion texture file: {e}") from None
+
+
+def texture_summary(tex: MotionTexture) -> str:
+    """A short human-readable description (used by the CLI)."""
+    st = tex.length_stats()
+    hist = np.asarray(tex.history)
+    lines = [
+        f"textons: {tex.n_textons}   segments: {len(np.asarray(tex.segments))}   "
+        f"state dim: {tex.config.state_dim}   D: {tex.obs_dim}   threshold: {tex.threshold:.4g}",
+        f"segment lengths (frames): min {int(st[:, 3][st[:, 0] > 0].min())}  "
+        f"mean {np.asarray(tex.segment_lengths).mean():.1f}  max {int(st[:, 4].max())}  "
+        f"(tmin {tex.config.tmin}, tmax {tex.config.tmax})",
+        "objective per EM iteration (after M-step / after E-step):",
+    ]
+    lines += [f"  {i:2d}: {a:14.2f} / {b:14.2f}" for i, (a, b) in enumerate(hist)]
+    return "\n".join(lines)
