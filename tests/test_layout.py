@@ -20,7 +20,8 @@ SRC = Path(mtex_jax.__file__).resolve().parent
 
 # lower number = lower layer; a module may import only from its own subpackage or a lower layer
 LAYERS = {
-    "internal": 0,
+    "core": 0,
+    "internal": 7,
     "motion": 1,
     "io": 2,
     "texture": 3,

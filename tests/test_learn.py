@@ -150,7 +150,7 @@ def test_model_file_errors(salsa_texture, tmp_path):
     with pytest.raises(ValueError, match=r"expected a 'mtex_jax\.MotionTexture' file"):
         load_texture(fm_file)
     # wrong format version and a missing array, written with the same container
-    from mtex_jax.internal._arrays import load_arrays_json, save_arrays_json
+    from mtex_jax.core._arrays import load_arrays_json, save_arrays_json
 
     arrays, meta = load_arrays_json(p, kind="mtex_jax.MotionTexture")
     bad_meta = dict(meta, format_version=99)

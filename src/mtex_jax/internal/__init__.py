@@ -1,14 +1,9 @@
-"""Shared building blocks used across subpackages (documented internal namespace).
+"""White-box building blocks for tests and advanced users (the one documented internal
+namespace, as ``optimistix.internal``).
 
-Not part of the user-facing API; tests and advanced users may import from here.
+Nothing here is part of the stable API: these are the kernels and helpers that the public
+functions are built from, exposed so that tests can check them against independent references
+without importing private modules. Nothing in the package imports this module.
 """
 
-from ._arrays import (
-    load_arrays_json as load_arrays_json,
-    save_arrays_json as save_arrays_json,
-)
-
-__all__ = [
-    "load_arrays_json",
-    "save_arrays_json",
-]
+__all__: list[str] = []

@@ -2,6 +2,10 @@
 array + JSON model-file format.
 """
 
+from ..core import (
+    load_arrays_json as load_arrays_json,
+    save_arrays_json as save_arrays_json,
+)
 from ._bvh import (
     euler_to_quat as euler_to_quat,
     parse_bvh as parse_bvh,
@@ -28,6 +32,7 @@ __all__ = [
     "euler_to_quat",
     "example_names",
     "example_path",
+    "load_arrays_json",
     "load_example",
     "parse_bvh",
     "parse_deepmimic",
@@ -35,5 +40,6 @@ __all__ = [
     "read_bvh",
     "read_deepmimic",
     "read_motion",
+    "save_arrays_json",
     "write_bvh",
 ]

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..internal import load_arrays_json, save_arrays_json
+from ..core import load_arrays_json, save_arrays_json
 from ._kinematics import forward_kinematics_arrays
 from ._motion import Motion, _check_compatible
 from ._rotation import (

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ..internal import load_arrays_json, save_arrays_json
+from ..core import load_arrays_json, save_arrays_json
 from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
 from ._segment import Segmentation, segment
