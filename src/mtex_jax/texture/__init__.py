@@ -18,6 +18,10 @@ from ._fit import (
     fit_texton as fit_texton,
     texton_from_stats as texton_from_stats,
 )
+from ._forward import (
+    forward_log_likelihood as forward_log_likelihood,
+    log_likelihood as log_likelihood,
+)
 from ._frame_terms import (
     frame_terms as frame_terms,
     init_terms as init_terms,
@@ -116,12 +120,14 @@ __all__ = [
     "exact_log_likelihood",
     "exact_log_likelihood_segments",
     "fit_texton",
+    "forward_log_likelihood",
     "frame_stats",
     "frame_terms",
     "greedy_init",
     "init_terms",
     "learn",
     "load_texture",
+    "log_likelihood",
     "match_texton",
     "path_cost",
     "path_of_length",

@@ -16,6 +16,7 @@ from jaxtyping import Array, Float, Int
 from ..core import load_arrays_json, save_arrays_json
 from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
+from ._forward import log_likelihood
 from ._segment import Segmentation, segment
 from ._texton import Texton
 
@@ -87,8 +88,8 @@ class MotionTexture(eqx.Module):
                 out[i] = (li.size, li.mean(), li.std(), li.min(), li.max())
         return out
 
-    def segment(self, Y: Float[Any, "T D"]) -> Segmentation:
-        """Optimal segmentation of observations ``Y (T, D)`` (or a :class:`Motion`)."""
+    def observations(self, Y: Float[Any, "T D"] | Motion) -> Array:
+        """``Y (T, D)`` as given, or a :class:`Motion` encoded by the texture's feature map."""
         if isinstance(Y, Motion):
             if self.feature_map is None:
                 raise ValueError("this texture was learned from arrays; pass observations Y")
@@ -96,6 +97,38 @@ class MotionTexture(eqx.Module):
         y = jnp.asarray(Y)
         if y.ndim != 2 or y.shape[1] != self.obs_dim:
             raise ValueError(f"Y must have shape (T, {self.obs_dim}), got {tuple(y.shape)}")
+        return y
+
+    def log_likelihood(self, Y: Float[Any, "T D"] | Motion, *, per_frame: bool = False) -> float:
+        """Marginal ``log p(Y)`` over all segmentations and labels (SPEC §10.1), in nats.
+
+        The semi-Markov forward algorithm (:func:`~mtex_jax.texture.log_likelihood`); it is
+        ``≥`` :meth:`best_path_log_likelihood`. ``per_frame=True`` divides by the number of
+        frames ``T`` (every frame is scored: the first two of each segment by the texton's
+        initial-state density). A density on the feature map's z-scored observation vectors.
+        """
+        y = self.observations(Y)
+        ll = log_likelihood(
+            self.textons,
+            jnp.log(jnp.asarray(self.M)),
+            jnp.log(jnp.asarray(self.pi)),
+            y,
+            self.config.tmin,
+            self.config.tmax,
+        )
+        return float(ll) / (y.shape[0] if per_frame else 1)
+
+    def best_path_log_likelihood(
+        self, Y: Float[Any, "T D"] | Motion, *, per_frame: bool = False
+    ) -> float:
+        """``log p(Y, best segmentation)``: the score of :meth:`segment` (the E-step's
+        objective), optionally divided by the number of frames."""
+        y = self.observations(Y)
+        return float(self.segment(y).score) / (y.shape[0] if per_frame else 1)
+
+    def segment(self, Y: Float[Any, "T D"] | Motion) -> Segmentation:
+        """Optimal segmentation of observations ``Y (T, D)`` (or a :class:`Motion`)."""
+        y = self.observations(Y)
         return segment(
             self.textons,
             jnp.log(jnp.asarray(self.M)),

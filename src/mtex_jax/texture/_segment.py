@@ -107,6 +107,27 @@ def _check_lengths(tmin: int, tmax: int | None, T: int) -> tuple[int, int]:
     return int(tmin), int(tmax)
 
 
+def _end_start_parts(scorer: SegmentScorer, Tp: int) -> tuple[Array, Array]:
+    """The end part ``A(e)`` and start part ``B⁰(b)`` of every segment score, each
+    ``(Tp + 1, N_t)`` (rows beyond ``T`` are ``−inf``): ``score_i(b, e) = A_i(e) + B⁰_i(b)``."""
+    init, cd, co = scorer.init, scorer.cum_dyn, scorer.cum_obs
+    n_t, T = init.shape
+    dtype = cd.dtype
+    c = scorer.dyn_offset + scorer.obs_offset  # (N,)
+    e_idx = jnp.arange(T)
+    a_all = (cd[:, 1:] + co[:, 1:]).T + e_idx[:, None].astype(dtype) * c
+    b0_all = (
+        init
+        - cd[:, jnp.minimum(e_idx + 2, T)]
+        - co[:, :T]
+        - e_idx[None, :].astype(dtype) * c[:, None]
+        - scorer.dyn_offset[:, None]
+        + scorer.obs_offset[:, None]
+    ).T
+    pad = jnp.full((Tp + 1 - T, n_t), -jnp.inf, dtype)
+    return jnp.concatenate([a_all, pad], axis=0), jnp.concatenate([b0_all, pad], axis=0)
+
+
 @eqx.filter_jit
 def viterbi_segments(
     scorer: SegmentScorer,
@@ -128,9 +149,8 @@ def viterbi_segments(
     Returns:
         the :class:`Segmentation` with ``K = T // tmin + 1`` slots.
     """
-    init, cd, co = scorer.init, scorer.cum_dyn, scorer.cum_obs
-    n_t, T = init.shape
-    dtype = cd.dtype
+    n_t, T = scorer.init.shape
+    dtype = scorer.cum_dyn.dtype
     neg = jnp.asarray(-jnp.inf, dtype)
     n_valid = jnp.asarray(n_valid)
     log_M = jnp.asarray(log_M, dtype)
@@ -139,22 +159,7 @@ def viterbi_segments(
     Wn = tmax - tmin + 1  # candidate starts per end
     nb = -(-T // P)  # blocks
     Tp = nb * P
-    c = scorer.dyn_offset + scorer.obs_offset  # (N,)
-
-    # end-dependent part A(e) and start-dependent part B0(b) of every segment score, (Tp+1, N)
-    e_idx = jnp.arange(T)
-    a_all = (cd[:, 1:] + co[:, 1:]).T + e_idx[:, None].astype(dtype) * c
-    b0_all = (
-        init
-        - cd[:, jnp.minimum(e_idx + 2, T)]
-        - co[:, :T]
-        - e_idx[None, :].astype(dtype) * c[:, None]
-        - scorer.dyn_offset[:, None]
-        + scorer.obs_offset[:, None]
-    ).T
-    pad = jnp.full((Tp + 1 - T, n_t), neg, dtype)
-    a_all = jnp.concatenate([a_all, pad], axis=0)
-    b0_all = jnp.concatenate([b0_all, pad], axis=0)
+    a_all, b0_all = _end_start_parts(scorer, Tp)
     # B(b) lives at row tmax + b; the first tmax rows are −inf (starts before frame 0)
     bbuf = jnp.full((tmax + Tp + 1, n_t), neg, dtype).at[tmax].set(b0_all[0] + log_pi)
 
