@@ -4,7 +4,49 @@ transitions, and novelty (SPEC §10.4).
 """
 
 # --- likelihood baselines and prediction (baselines module) ---
+from ._baselines import (
+    GaussianAR2 as GaussianAR2,
+    constant_velocity as constant_velocity,
+    fit_ar2 as fit_ar2,
+    hold_last as hold_last,
+    prediction_error as prediction_error,
+)
+from ._prediction import texture_predict as texture_predict
 
 # --- motion metrics (realism, contacts, transitions, novelty) ---
+from ._contacts import (
+    ContactModel as ContactModel,
+    PenetrationResult as PenetrationResult,
+    SkatingResult as SkatingResult,
+    fit_contacts as fit_contacts,
+    foot_joints as foot_joints,
+)
+from ._kinematics import (
+    derivatives as derivatives,
+    joint_positions as joint_positions,
+    joint_speeds as joint_speeds,
+    moving_joints as moving_joints,
+)
+from ._novelty import (
+    CopyResult as CopyResult,
+    NoveltyResult as NoveltyResult,
+    copying as copying,
+    copying_from_indices as copying_from_indices,
+    novelty as novelty,
+    successor_array as successor_array,
+)
+from ._realism import (
+    RealismResult as RealismResult,
+    realism as realism,
+    speed_samples as speed_samples,
+    wasserstein_1d as wasserstein_1d,
+)
+from ._transitions import (
+    TransitionResult as TransitionResult,
+    boundary_jumps as boundary_jumps,
+    joint_jumps as joint_jumps,
+    jump_p99 as jump_p99,
+    transitions as transitions,
+)
 
 __all__: list[str] = []
