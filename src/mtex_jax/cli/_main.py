@@ -22,6 +22,7 @@ _COMMANDS = (
     "_motion_cmds",  # info, render, examples
     "_texture_cmds",  # learn, segment, demo, synth, choreograph
     "_implicit",  # implicit-synth, track
+    "_evaluate",  # evaluate
 )
 
 

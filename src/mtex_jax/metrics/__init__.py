@@ -11,7 +11,6 @@ from ._baselines import (
     hold_last as hold_last,
     prediction_error as prediction_error,
 )
-from ._prediction import texture_predict as texture_predict
 
 # --- motion metrics (realism, contacts, transitions, novelty) ---
 from ._contacts import (
@@ -35,12 +34,14 @@ from ._novelty import (
     novelty as novelty,
     successor_array as successor_array,
 )
+from ._prediction import texture_predict as texture_predict
 from ._realism import (
     RealismResult as RealismResult,
     realism as realism,
     speed_samples as speed_samples,
     wasserstein_1d as wasserstein_1d,
 )
+from ._report import MotionJudge as MotionJudge, density_report as density_report
 from ._transitions import (
     TransitionResult as TransitionResult,
     boundary_jumps as boundary_jumps,
@@ -49,4 +50,37 @@ from ._transitions import (
     transitions as transitions,
 )
 
-__all__: list[str] = []
+__all__ = [
+    "ContactModel",
+    "CopyResult",
+    "GaussianAR2",
+    "MotionJudge",
+    "NoveltyResult",
+    "PenetrationResult",
+    "RealismResult",
+    "SkatingResult",
+    "TransitionResult",
+    "boundary_jumps",
+    "constant_velocity",
+    "copying",
+    "copying_from_indices",
+    "density_report",
+    "derivatives",
+    "fit_ar2",
+    "fit_contacts",
+    "foot_joints",
+    "hold_last",
+    "joint_jumps",
+    "joint_positions",
+    "joint_speeds",
+    "jump_p99",
+    "moving_joints",
+    "novelty",
+    "prediction_error",
+    "realism",
+    "speed_samples",
+    "successor_array",
+    "texture_predict",
+    "transitions",
+    "wasserstein_1d",
+]
