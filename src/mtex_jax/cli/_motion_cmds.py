@@ -50,11 +50,22 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_examples(args: argparse.Namespace) -> int:
-    from ..io import example_names, load_example
+    from ..io import example_names, load_example, load_salsa, salsa_credit, salsa_split
 
+    train, held = salsa_split()
+    print("CMU salsa clips (subject 60), the default data; read as example:salsa/NAME")
+    for name, m in zip(train + held, [load_salsa(n) for n in train + held], strict=True):
+        part = "training" if name in train else "held out"
+        print(
+            f"salsa/{name:12s} {m.n_frames:5d} frames  {m.fps:5.1f} Hz  {m.duration:6.2f} s  "
+            f"({part})"
+        )
+    print("\nDeepMimic humanoid3d clips (zlib licence); read as example:NAME")
     for name in example_names():
         m = load_example(name)
         print(f"{name:18s} {m.n_frames:5d} frames  {m.fps:5.1f} Hz  {m.duration:6.2f} s")
+    print()
+    print(salsa_credit().rstrip())
     return 0
 
 

@@ -1,5 +1,5 @@
-"""Reading and writing motion: BVH, DeepMimic JSON, the embedded example clips, and the
-array + JSON model-file format.
+"""Reading and writing motion: BVH, DeepMimic JSON, the embedded example clips (the CMU salsa
+default data and the DeepMimic clips), and the array + JSON model-file format.
 """
 
 from ..core import (
@@ -26,6 +26,12 @@ from ._deepmimic import (
 from ._readers import (
     read_motion as read_motion,
 )
+from ._salsa import (
+    load_salsa as load_salsa,
+    salsa_credit as salsa_credit,
+    salsa_names as salsa_names,
+    salsa_split as salsa_split,
+)
 
 __all__ = [
     "HUMANOID3D",
@@ -34,12 +40,16 @@ __all__ = [
     "example_path",
     "load_arrays_json",
     "load_example",
+    "load_salsa",
     "parse_bvh",
     "parse_deepmimic",
     "quat_to_euler",
     "read_bvh",
     "read_deepmimic",
     "read_motion",
+    "salsa_credit",
+    "salsa_names",
+    "salsa_split",
     "save_arrays_json",
     "write_bvh",
 ]

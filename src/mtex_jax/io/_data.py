@@ -6,6 +6,7 @@ from importlib import resources
 
 from ..motion import Motion
 from ._deepmimic import parse_deepmimic
+from ._salsa import load_salsa
 
 __all__ = ["example_names", "example_path", "load_example"]
 
@@ -30,7 +31,8 @@ def example_path(name: str) -> str:
 
 
 def load_example(name: str) -> Motion:
-    """Load an embedded DeepMimic humanoid3d clip by name (see :func:`example_names`).
+    """Load an embedded DeepMimic humanoid3d clip by name (see :func:`example_names`), or a
+    shipped CMU salsa clip as ``salsa/NAME`` (e.g. ``salsa/60_01``, see :func:`load_salsa`).
 
     The clips ship inside the package (they work from an installed wheel); their zlib licence
     notice is in ``mtex_jax.data.deepmimic/LICENSE-zlib.txt``.
@@ -38,8 +40,13 @@ def load_example(name: str) -> Motion:
     Raises:
         ValueError: unknown name (the message lists the available ones).
     """
+    if name.startswith("salsa/"):
+        return load_salsa(name[len("salsa/") :])
     names = example_names()
     if name not in names:
-        raise ValueError(f"unknown example {name!r}; available: {', '.join(names)}")
+        raise ValueError(
+            f"unknown example {name!r}; available: {', '.join(names)}, or salsa/NAME "
+            "(NAME one of the CMU salsa clips 60_01 ... 60_15, see 'mtex examples')"
+        )
     res = resources.files(_PACKAGE).joinpath(f"{_PREFIX}{name}.txt")
     return parse_deepmimic(res.read_text(encoding="utf-8"), example_path(name))

@@ -1,0 +1,1 @@
+"""The CMU salsa clips (see CREDIT.txt)."""
