@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 import mtex_jax as mj
-from mtex_jax.cli._main import main
+from mtex_jax.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-from mtex_jax.io._deepmimic import FRAME_SIZE
+from mtex_jax.internal import DEEPMIMIC_FRAME_SIZE
 
 
 def test_examples_load_with_plausible_values():
@@ -76,7 +76,7 @@ def test_deepmimic_malformed_inputs(tmp_path):
     frame = [0.0333] + [0.0, 0.85, 0.0] + [1.0, 0.0, 0.0, 0.0] * 2
     frame += [1.0, 0, 0, 0] * 2 + [0.3] + [1.0, 0, 0, 0] * 2 + [0.2]
     frame += [1.0, 0, 0, 0] + [0.3] + [1.0, 0, 0, 0] * 2 + [0.2]
-    assert len(frame) == FRAME_SIZE
+    assert len(frame) == DEEPMIMIC_FRAME_SIZE
     frames = [list(frame) for _ in range(4)]
     good = tmp_path / "good.txt"
     good.write_text(_frames_text(frames))

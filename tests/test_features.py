@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import mtex_jax as mj
-from mtex_jax.motion._features import raw_features, unwrap_expmaps
+from mtex_jax.motion import raw_features, unwrap_expmaps
 
 
 def _rel_err(a: mj.Motion, b: mj.Motion) -> float:

@@ -12,10 +12,9 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-from mtex_jax.cli._main import main
-from mtex_jax.implicit._model import ImplicitModel
-from mtex_jax.implicit._tree import _sample_exact_traced, _sample_tree_traced, sign_codes
-from mtex_jax.implicit._windows import _encode, pose_vectors
+from mtex_jax.cli import main
+from mtex_jax.implicit import ImplicitModel, pose_vectors, sign_codes
+from mtex_jax.internal import encode_motion, sample_exact_traced, sample_tree_traced
 
 WINDOW = 10
 HELD_OUT = 2  # 60_03: probes come from a clip the database has not seen
@@ -112,7 +111,7 @@ def test_padded_encoding_equals_plain_encoding(model, salsa30):
     compilations); the padding must not change any real frame."""
     clip = salsa30[HELD_OUT][:203]
     plain = np.asarray(model.feature_map.encode(clip))
-    np.testing.assert_allclose(_encode(model.feature_map, clip), plain, atol=1e-12)
+    np.testing.assert_allclose(encode_motion(model.feature_map, clip), plain, atol=1e-12)
     psi = pose_vectors(model.feature_map, clip)
     np.testing.assert_allclose(psi[:, : plain.shape[1]], plain[1:], atol=1e-12)
     np.testing.assert_allclose(psi[:, plain.shape[1] :], np.diff(plain, axis=0), atol=1e-12)
@@ -286,15 +285,15 @@ def test_sampling_new_probes_does_not_recompile(model, probes):
     key = jax.random.PRNGKey(0)
     for leaf in ("uniform", "weighted"):
         model.sample(key, probes, 0.1, leaf=leaf)  # compile (or reuse) once
-        n0 = eqx.debug.get_num_traces(_sample_tree_traced)
+        n0 = eqx.debug.get_num_traces(sample_tree_traced)
         for k in range(4):
             new = probes + 0.01 * (k + 1)
             model.sample(jax.random.PRNGKey(k), new, 0.1 * (k + 1), leaf=leaf)
-        assert eqx.debug.get_num_traces(_sample_tree_traced) == n0
+        assert eqx.debug.get_num_traces(sample_tree_traced) == n0
     model.sample_exact(key, probes, 0.1)
-    n1 = eqx.debug.get_num_traces(_sample_exact_traced)
+    n1 = eqx.debug.get_num_traces(sample_exact_traced)
     model.sample_exact(jax.random.PRNGKey(9), probes * 0.5, 2.0)
-    assert eqx.debug.get_num_traces(_sample_exact_traced) == n1
+    assert eqx.debug.get_num_traces(sample_exact_traced) == n1
 
 
 # --------------------------------------------------------------------------- synthesis

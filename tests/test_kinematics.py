@@ -10,7 +10,8 @@ from jax.test_util import check_grads
 from scipy.spatial.transform import Rotation
 
 import mtex_jax as mj
-from mtex_jax.motion._rotation import quat_rotate, quat_twist, wrap_angle
+from mtex_jax.internal import wrap_angle
+from mtex_jax.motion import quat_rotate, quat_twist
 
 SK = mj.io.HUMANOID3D
 

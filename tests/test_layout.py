@@ -1,8 +1,10 @@
 """The package layout rules of ARCHITECTURE.md, checked on the source tree.
 
 - no source file over 500 lines;
-- no private name (``_x``) imported from another subpackage;
+- no private name (``_x``) imported from another subpackage, except by ``internal`` (the one
+  white-box namespace, which re-exports private building blocks under public names);
 - no module imports from a subpackage of a higher layer (nor from a sibling of its layer);
+- ``internal`` is the top layer: nothing in the package imports it (not even the top level);
 - the top level re-exports at most 30 names; ``MotionTexture`` lives outside the trainer.
 """
 
@@ -89,22 +91,38 @@ def test_no_file_over_500_lines(path):
     assert n <= 500, f"{path.relative_to(SRC)} has {n} lines"
 
 
+def _rule_problems(
+    own: str | None, imports: list[tuple[str, list[str], int]], where: str
+) -> list[str]:
+    """The layout rules broken by the ``imports`` of one module of subpackage ``own`` (``None``
+    for a top-level module)."""
+    problems = []
+    for target, names, line in imports:
+        if target in ("", own) or target not in LAYERS:
+            continue
+        at = f"{where}:{line}"
+        if target == "internal":
+            problems.append(f"{at} imports the white-box namespace internal")
+            continue
+        if own is None:  # top-level modules re-export the subpackages' public API
+            continue
+        private = [n for n in names if n.startswith("_") and n != "__version__"]
+        if private and own != "internal":
+            problems.append(f"{at} imports private {private} from {target}")
+        if own != "cli" and LAYERS[target] >= LAYERS[own]:
+            problems.append(f"{at}: {own} (layer {LAYERS[own]}) imports {target}")
+    return problems
+
+
 def test_no_private_names_across_subpackages_and_no_upward_imports():
     problems = []
     for path in _modules():
-        own = _subpackage(path)
-        if own is None:  # top-level modules re-export the API
-            continue
-        for target, names, line in _imports(path):
-            if target in ("", own) or target not in LAYERS:
-                continue
-            where = f"{path.relative_to(SRC)}:{line}"
-            private = [n for n in names if n.startswith("_") and n != "__version__"]
-            if private:
-                problems.append(f"{where} imports private {private} from {target}")
-            if own != "cli" and LAYERS[target] >= LAYERS[own]:
-                problems.append(f"{where}: {own} (layer {LAYERS[own]}) imports {target}")
+        problems += _rule_problems(_subpackage(path), _imports(path), str(path.relative_to(SRC)))
     assert not problems, "\n".join(problems)
+
+
+def test_internal_is_the_top_layer():
+    assert LAYERS["internal"] == max(LAYERS.values())
 
 
 def test_checker_sees_violations():
@@ -120,6 +138,26 @@ def test_checker_sees_violations():
     assert ("motion", ["_helper"], 2) in found
     assert ("viz", ["render_gif"], 3) in found
     assert ("texture", ["_fit"], 4) in found
+    assert len(_rule_problems("texture", found, "probe")) == 3  # two private, one upward
+
+
+def test_only_internal_may_import_private_names_and_nothing_imports_internal():
+    white_box = "from ..texture._linalg import _factor as block_tridiag_factor\n"
+    assert not _rule_problems("internal", _imports_of(white_box, ("internal", "__init__.py")), "")
+    assert _rule_problems("viz", _imports_of(white_box, ("viz", "_probe.py")), "")
+    uses = "from ..internal import path_core\nfrom mtex_jax.internal import TO_PLOT\n"
+    for own in ("cli", "texture"):  # cli may import any layer, but not internal
+        assert len(_rule_problems(own, _imports_of(uses, (own, "_probe.py")), "")) == 2
+    top = "from .internal import path_core\nfrom mtex_jax.internal import TO_PLOT\n"
+    assert len(_rule_problems(None, _imports_of(top, ("__init__.py",)), "")) == 2
+
+
+def test_internal_all_lists_its_re_exports():
+    import mtex_jax.internal as internal
+
+    public = {n for n in vars(internal) if not n.startswith("_")}
+    assert set(internal.__all__) == public
+    assert internal.__all__ == sorted(internal.__all__, key=lambda n: (not n.isupper(), n))
 
 
 def test_small_top_level():

@@ -12,9 +12,7 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 import mtex_jax as mj
-from mtex_jax.texture._config import LearnConfig
-from mtex_jax.texture._learn import learn
-from mtex_jax.texture._model import MotionTexture, load_texture
+from mtex_jax.texture import LearnConfig, MotionTexture, learn, load_texture
 
 
 # ---------------------------------------------------------------------------------------------
@@ -150,7 +148,7 @@ def test_model_file_errors(salsa_texture, tmp_path):
     with pytest.raises(ValueError, match=r"expected a 'mtex_jax\.MotionTexture' file"):
         load_texture(fm_file)
     # wrong format version and a missing array, written with the same container
-    from mtex_jax.core._arrays import load_arrays_json, save_arrays_json
+    from mtex_jax.core import load_arrays_json, save_arrays_json
 
     arrays, meta = load_arrays_json(p, kind="mtex_jax.MotionTexture")
     bad_meta = dict(meta, format_version=99)
@@ -216,7 +214,7 @@ def test_sharded_learning_equals_single_device(tmp_path):
         assert jax.device_count() == 2, jax.devices()
         sys.path.insert(0, os.environ["TESTS_DIR"])
         from test_learn import make_textons, sample_texture
-        from mtex_jax.texture._learn import LearnConfig, learn
+        from mtex_jax.texture import LearnConfig, learn
         rng = np.random.default_rng(11)
         Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=24)
         parts = [Y[:700], Y[700:1300], Y[1300:]]

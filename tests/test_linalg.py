@@ -13,18 +13,18 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from jax.test_util import check_grads
 
-from mtex_jax.texture._banded import (
+from mtex_jax.internal import (
+    block_tridiag_factor,
+    solve_rows_fused,
+    solve_rows_plain,
+    solve_rows_unbatched,
+    substitute_rows,
+    tridiag_solve_rows,
+)
+from mtex_jax.texture import (
     block_banded_matvec,
     block_banded_solve,
     block_banded_solve_status,
-)
-from mtex_jax.texture._linalg import (
-    _factor,
-    _solve_rows_fused,
-    _solve_rows_plain,
-    _solve_rows_unbatched,
-    _substitute_rows,
-    _tridiag_solve_rows,
     block_tridiag_cholesky,
     block_tridiag_solve,
 )
@@ -197,7 +197,7 @@ def test_tridiag_paths_match_dense(n, b, m):
     A, D, S = random_tridiag(rng, n, b)
     R = rng.standard_normal((n * b, m))
     ref = np.linalg.solve(A, R)
-    for fn in (_solve_rows_unbatched, _solve_rows_fused, _solve_rows_plain, _tridiag_solve_rows):
+    for fn in (solve_rows_unbatched, solve_rows_fused, solve_rows_plain, tridiag_solve_rows):
         x, ok, bad = jax.jit(fn)(D, S, rows_of(R, n, b))
         assert bool(ok) and int(bad) == -1
         x = np.swapaxes(np.asarray(x), 1, 2).reshape(n * b, m)
@@ -241,7 +241,7 @@ def test_vmap_over_rhs_factorises_once_and_matches():
     n, b, nrhs = 6, 4, 37
     A, D, S = random_tridiag(rng, n, b)
     R = rng.standard_normal((nrhs, n, 1, b))
-    f = jax.vmap(_tridiag_solve_rows, in_axes=(None, None, 0))
+    f = jax.vmap(tridiag_solve_rows, in_axes=(None, None, 0))
     x, ok, bad = jax.jit(f)(D, S, R)
     assert x.shape == R.shape and bool(np.all(np.asarray(ok))) and np.all(np.asarray(bad) == -1)
     ref = np.linalg.solve(A, R.reshape(nrhs, n * b).T).T
@@ -250,7 +250,7 @@ def test_vmap_over_rhs_factorises_once_and_matches():
     assert shapes and all(len(s) == 2 for _, s in shapes), shapes  # no batched LAPACK call
     # the whole banded solve vmapped over right-hand sides, and over matrices (batched)
     Ab, Db, Sb = zip(*(random_tridiag(rng, n, b) for _ in range(3)), strict=True)
-    xb, okb, _ = jax.jit(jax.vmap(_tridiag_solve_rows))(np.stack(Db), np.stack(Sb), R[:3])
+    xb, okb, _ = jax.jit(jax.vmap(tridiag_solve_rows))(np.stack(Db), np.stack(Sb), R[:3])
     assert okb.shape == (3,) and bool(np.all(np.asarray(okb)))
     for i in range(3):
         refb = np.linalg.solve(Ab[i], R[i].reshape(n * b))
@@ -264,13 +264,13 @@ def test_check_grads_every_path(path):
     _, D, S = random_tridiag(rng, n, b, ridge=1.0)
     if path == "fused":
         R = rng.standard_normal((n, 2, b))
-        f = lambda d, s, r: _tridiag_solve_rows(d, s, r)[0]
+        f = lambda d, s, r: tridiag_solve_rows(d, s, r)[0]
     elif path == "vmap-rhs":
         R = rng.standard_normal((3, n, 1, b))
-        f = lambda d, s, r: jax.vmap(_tridiag_solve_rows, in_axes=(None, None, 0))(d, s, r)[0]
+        f = lambda d, s, r: jax.vmap(tridiag_solve_rows, in_axes=(None, None, 0))(d, s, r)[0]
     else:
         R = rng.standard_normal((n, 120, b))  # (b + m)·b > 1000: factor-once path
-        f = lambda d, s, r: _tridiag_solve_rows(d, s, r)[0]
+        f = lambda d, s, r: tridiag_solve_rows(d, s, r)[0]
     sym = lambda d: 0.5 * (d + np.swapaxes(d, -1, -2))
     g = jax.jit(lambda d, s, r: f(0.5 * (d + jnp.swapaxes(d, -1, -2)), s, r))
     check_grads(g, (sym(D), S, R), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
@@ -286,10 +286,10 @@ def test_non_pd_status_every_path(path):
     m = 1 if path != "many-rhs" else 300
     R = rng.standard_normal((n, m, b))
     if path == "vmap-rhs":
-        x, ok, bad = jax.vmap(_tridiag_solve_rows, in_axes=(None, None, 0))(D, S, R[None])
+        x, ok, bad = jax.vmap(tridiag_solve_rows, in_axes=(None, None, 0))(D, S, R[None])
         ok, bad = ok[0], bad[0]
     else:
-        x, ok, bad = jax.jit(_tridiag_solve_rows)(D, S, R)
+        x, ok, bad = jax.jit(tridiag_solve_rows)(D, S, R)
     assert not bool(ok) and int(bad) == 3
     assert np.isfinite(np.asarray(x)).all()
 
@@ -313,12 +313,12 @@ def test_in_place_loops_copy_no_buffer():
     rng = np.random.default_rng(14)
     _, D, S = random_tridiag(rng, n, b)
     R = rng.standard_normal((n, m, b))
-    hlo = jax.jit(_solve_rows_fused).lower(D, S, R).compile().as_text()
+    hlo = jax.jit(solve_rows_fused).lower(D, S, R).compile().as_text()
     assert hlo is not None and f"f64[{n},{2 * b + m},{b}]" in hlo  # the buffer exists
     assert not re.search(rf"f64\[{n},{2 * b + m},{b}\]\{{[0-9,]+\}} copy\(", hlo)
-    fac = _factor(jnp.asarray(D), jnp.asarray(S))
+    fac = block_tridiag_factor(jnp.asarray(D), jnp.asarray(S))
     Rm = rng.standard_normal((n, 50, b))
-    hlo = jax.jit(_substitute_rows).lower(fac.Linv, fac.M, Rm).compile().as_text()
+    hlo = jax.jit(substitute_rows).lower(fac.Linv, fac.M, Rm).compile().as_text()
     assert hlo is not None and f"f64[{n},50,{b}]" in hlo
     # the input (a jit parameter) may be copied once into the loop buffer, not per step
     assert len(re.findall(rf"f64\[{n},50,{b}\]\{{[0-9,]+\}} copy\(", hlo)) <= 1

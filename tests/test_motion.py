@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 import mtex_jax as mj
-from mtex_jax.motion._motion import slerp
+from mtex_jax.motion import slerp
 
 
 def test_motion_validates_shapes():

@@ -10,8 +10,8 @@ import pytest
 from PIL import Image
 
 import mtex_jax as mj
-from mtex_jax.viz._panel import _TO_PLOT
-from mtex_jax.viz._render import render_filmstrip, render_gif
+from mtex_jax.internal import TO_PLOT
+from mtex_jax.viz import render_filmstrip, render_gif
 
 LEFT_RGB = (0x1F, 0x5F, 0xBF)
 RIGHT_RGB = (0xD6, 0x27, 0x28)
@@ -187,7 +187,7 @@ def test_filmstrip_short_clip_shows_all_frames(dance, tmp_path):
 # Orientation: the up axis is vertical, through a proper rotation
 # ---------------------------------------------------------------------------------------------
 def test_world_to_plot_maps_are_rotations_taking_up_to_vertical():
-    for up, m in _TO_PLOT.items():
+    for up, m in TO_PLOT.items():
         np.testing.assert_allclose(m @ m.T, np.eye(3), atol=1e-12)
         assert np.linalg.det(m) == pytest.approx(1.0)
         np.testing.assert_allclose(m @ np.eye(3)[up], [0.0, 0.0, 1.0])
@@ -196,7 +196,7 @@ def test_world_to_plot_maps_are_rotations_taking_up_to_vertical():
 def rest_pose(up_axis: int) -> mj.Motion:
     """The DeepMimic figure at rest (arms down), its offsets rotated to have ``up_axis`` up."""
     sk = mj.load_example("walk").skeleton
-    to_world = _TO_PLOT[up_axis].T @ _TO_PLOT[sk.up_axis]
+    to_world = TO_PLOT[up_axis].T @ TO_PLOT[sk.up_axis]
     rot = lambda v: tuple(float(x) for x in to_world @ np.asarray(v))
     sk2 = dataclasses.replace(
         sk,

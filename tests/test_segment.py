@@ -9,10 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mtex_jax.texture._fit import fit_texton
-from mtex_jax.texture._likelihood import segment_log_likelihood
-from mtex_jax.texture._segment import segment
-from mtex_jax.texture._texton import stack_textons
+from mtex_jax.texture import fit_texton, segment, segment_log_likelihood, stack_textons
 
 
 def _textons(rng, n_t, D=4, k=2):
@@ -132,8 +129,7 @@ def test_segment_input_checks_and_no_retrace():
     # infeasible: 7 frames cannot be cut into pieces of exactly 3
     seg = segment(tex, lm, lp, Y[:7], 3, 3)
     assert int(seg.n_segments) == 0 and float(seg.score) == -np.inf
-    from mtex_jax.texture._scores import segment_scores
-    from mtex_jax.texture._segment import viterbi_segments
+    from mtex_jax.texture import segment_scores, viterbi_segments
 
     f = eqx.debug.assert_max_traces(viterbi_segments.__wrapped__, max_traces=1)  # type: ignore[attr-defined]
     g = eqx.filter_jit(f)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-import mtex_jax.texture._keyposes as keyposes
+from mtex_jax.internal import usable_key_poses
 
 FPS = 60.0
 
@@ -76,7 +76,7 @@ def test_fig8_boundaries_smooth_independent_neighbours_jump(salsa):
         f"{np.array2string(rows, precision=4)}\nboundaries above the real p99 (sampled, "
         f"zero noise, independent, of): {above.sum(axis=0).tolist()}; sampled frames inside "
         f"textons above it: {inside[0]} of {inside[1]} ({inside[0] / inside[1]:.2%}); key-pose "
-        f"pairs left out as outliers: {np.flatnonzero(~keyposes._usable_key_poses(tex)).tolist()}"
+        f"pairs left out as outliers: {np.flatnonzero(~usable_key_poses(tex)).tolist()}"
     )
     assert np.all(rows[:, 2] <= p99)  # zero noise: the largest boundary within real jumps
     assert np.all(rows[:, 0] <= p99)  # sampled: the typical boundary within real jumps

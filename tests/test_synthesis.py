@@ -14,11 +14,14 @@ from hypothesis import given, settings, strategies as st
 from jax.test_util import check_grads
 from scipy import stats
 
-from mtex_jax.texture._bridge import _bridge_usable
-from mtex_jax.texture._fit import fit_texton
-from mtex_jax.texture._normal import _equations, _solve_constrained
-from mtex_jax.texture._synthesis import _sincos_turn, _standard_normal, synthesize_texton
-from mtex_jax.texture._texton import Texton, spectral_radius
+from mtex_jax.internal import (
+    bridge_usable,
+    constrained_equations,
+    sincos_turn,
+    solve_constrained,
+    standard_normal,
+)
+from mtex_jax.texture import Texton, fit_texton, spectral_radius, synthesize_texton
 
 
 def make_texton(seed: int, D: int, k: int) -> Texton:
@@ -89,7 +92,7 @@ def lapack_shapes(jaxpr):
 
 def noise(key, length: int, k: int) -> np.ndarray:
     """The equation noise ``v`` ``(l−2, k)`` that ``synthesize_texton`` draws from ``key``."""
-    return np.asarray(_standard_normal(key, (length - 2, k), jnp.float64))
+    return np.asarray(standard_normal(key, (length - 2, k), jnp.float64))
 
 
 def random_states_case(tex: Texton, length: int, rng: np.random.Generator, n_edit: int):
@@ -395,7 +398,7 @@ def test_vmap_over_keys_equals_single_calls_and_factorises_once(weighting, edit)
 def test_standard_normal_is_standard_normal():
     """The Box–Muller noise: Kolmogorov–Smirnov against N(0, 1), moments, float32, and the
     polynomial (cos 2πu, sin 2πu) against numpy, quadrant boundaries included."""
-    z = np.asarray(_standard_normal(jax.random.key(0), (400, 501), jnp.float64)).ravel()
+    z = np.asarray(standard_normal(jax.random.key(0), (400, 501), jnp.float64)).ravel()
     assert z.size == 200_400 and np.isfinite(z).all()
     assert stats.kstest(z, "norm").pvalue > 1e-6
     n = z.size
@@ -404,12 +407,12 @@ def test_standard_normal_is_standard_normal():
     # independent halves: the cosine and the sine parts are uncorrelated
     h = z.size // 2
     assert abs(np.corrcoef(z[:h], z[h : 2 * h])[0, 1]) < 5 / np.sqrt(h)
-    z32 = _standard_normal(jax.random.key(1), (20001, 3), jnp.float32)
+    z32 = standard_normal(jax.random.key(1), (20001, 3), jnp.float32)
     assert z32.dtype == jnp.float32 and z32.shape == (20001, 3)
     assert stats.kstest(np.asarray(z32, np.float64).ravel(), "norm").pvalue > 1e-6
     # an odd size: the last sine is dropped, the rest is the same draw
-    odd = np.asarray(_standard_normal(jax.random.key(2), (7,), jnp.float64))
-    even = np.asarray(_standard_normal(jax.random.key(2), (8,), jnp.float64))
+    odd = np.asarray(standard_normal(jax.random.key(2), (7,), jnp.float64))
+    even = np.asarray(standard_normal(jax.random.key(2), (8,), jnp.float64))
     assert odd.shape == (7,) and np.isfinite(odd).all()
     u = np.asarray(jax.random.uniform(jax.random.key(2), (2, 4), jnp.float64))
     r = np.sqrt(-2 * np.log1p(-u[0]))
@@ -420,7 +423,7 @@ def test_standard_normal_is_standard_normal():
     u = np.concatenate(
         [np.random.default_rng(0).uniform(size=100_000), [0.0, 0.25, 0.5, 0.75, 1 - 2**-53]]
     )
-    c, s_ = (np.asarray(a) for a in _sincos_turn(jnp.asarray(u)))
+    c, s_ = (np.asarray(a) for a in sincos_turn(jnp.asarray(u)))
     np.testing.assert_allclose(c, np.cos(2 * np.pi * u), rtol=0, atol=2e-15)
     np.testing.assert_allclose(s_, np.sin(2 * np.pi * u), rtol=0, atol=2e-15)
 
@@ -460,11 +463,11 @@ def test_bridge_at_paper_scale_equals_banded_solve_and_dense(rho):
         out = np.asarray(synthesize_texton(key, tex, length, ys[:2], ys[-2:]))
         x = (out - t["mu"]) @ t["C"]
         w = jnp.asarray(v) @ tex.B.T
-        assert bool(_bridge_usable(tex.A1, tex.A2, length - 4)) == (rho < 1), (rho, length)
-        eqs = _equations(
+        assert bool(bridge_usable(tex.A1, tex.A2, length - 4)) == (rho < 1), (rho, length)
+        eqs = constrained_equations(
             tex, length, w, jnp.asarray(ys[:2]), jnp.asarray(ys[-2:]), None, "whitened"
         )
-        banded, ok = _solve_constrained(tex, eqs, w)
+        banded, ok = solve_constrained(tex, eqs, w)
         assert bool(ok)
         banded = np.asarray(banded)
         assert np.linalg.norm(x - banded) <= 1e-10 * np.linalg.norm(banded)
@@ -498,8 +501,8 @@ def test_bridge_under_vmap_over_poses_textons_and_keys():
     assert shapes and all(len(s) == 2 for s in shapes), shapes
     # textons batched (one contracting, one amplifying: bridge and banded fallback mixed)
     amp = eqx.tree_at(lambda t: t.A1, tex, tex.A1 * 3.0)
-    assert bool(_bridge_usable(tex.A1, tex.A2, length - 4))
-    assert not bool(_bridge_usable(amp.A1, amp.A2, length - 4))
+    assert bool(bridge_usable(tex.A1, tex.A2, length - 4))
+    assert not bool(bridge_usable(amp.A1, amp.A2, length - 4))
     stacked = jax.tree.map(lambda a, b: jnp.stack([a, b]), tex, amp)
     texs = jax.jit(jax.vmap(one, in_axes=(0, None, None, None)))(stacked, keys[0], S[0], E[0])
     for i, t in enumerate((tex, amp)):
@@ -513,7 +516,7 @@ def test_amplifying_texton_gradients_stay_finite():
     tex = make_texton(41, D=5, k=2)
     tex = eqx.tree_at(lambda t: t.A1, tex, tex.A1 * 1.6)
     length = 1200
-    assert not bool(_bridge_usable(tex.A1, tex.A2, length - 4))
+    assert not bool(bridge_usable(tex.A1, tex.A2, length - 4))
     rng = np.random.default_rng(1)
     s0, e0 = jnp.asarray(rng.standard_normal((2, 5))), jnp.asarray(rng.standard_normal((2, 5)))
 
@@ -532,7 +535,7 @@ def test_bridge_float32_smoke():
     e0 = rng.standard_normal((2, 6)).astype(np.float32)
     out = synthesize_texton(jax.random.key(1), tex32, 30, s0, e0)
     assert out.dtype == jnp.float32 and np.isfinite(np.asarray(out)).all()
-    assert bool(_bridge_usable(tex32.A1, tex32.A2, 26))  # the bridge, not the fallback
+    assert bool(bridge_usable(tex32.A1, tex32.A2, 26))  # the bridge, not the fallback
     # the conditional mean against float64 (the noise draws differ between dtypes)
     mean = np.asarray(synthesize_texton(None, tex32, 30, s0, e0))
     mean64 = np.asarray(synthesize_texton(None, make_texton(42, D=6, k=3), 30, s0, e0))

@@ -19,30 +19,29 @@ import scipy.stats
 from jax.test_util import check_grads
 from scipy.optimize import linear_sum_assignment
 
+from mtex_jax import internal
 from mtex_jax.texture import (
-    _fit as _fit_mod,
-    _frame_terms as _frame_terms_mod,
-    _texton as _texton,
-    _workers as _workers,
-)
-from mtex_jax.texture._fit import fit_texton, texton_from_stats
-from mtex_jax.texture._frame_terms import frame_terms, init_terms
-from mtex_jax.texture._lds_refine import (
-    RefineReport,
-    exact_log_likelihood_segments,
-    refine_texton,
-)
-from mtex_jax.texture._likelihood import exact_log_likelihood, segment_log_likelihood
-from mtex_jax.texture._sample import sample_texton
-from mtex_jax.texture._scores import SegmentScorer, segment_scores
-from mtex_jax.texture._stats import (
     DynamicsStats,
     FrameStats,
+    RefineReport,
+    SegmentScorer,
+    Texton,
     dynamics_stats,
+    exact_log_likelihood,
+    exact_log_likelihood_segments,
+    fit_texton,
     frame_stats,
+    frame_terms,
+    init_terms,
+    refine_texton,
+    sample_texton,
+    segment_log_likelihood,
+    segment_scores,
+    spectral_radius,
+    stack_textons,
     subspace_from_stats,
+    texton_from_stats,
 )
-from mtex_jax.texture._texton import Texton, spectral_radius, stack_textons
 
 # --------------------------------------------------------------------------------------------
 # helpers: random systems and numpy references
@@ -213,7 +212,7 @@ def anisotropic_data(rng, T, D, decay=0.8):
 
 
 def assert_valid_texton(tex):
-    for name in _texton._TEXTON_FIELDS:
+    for name in internal.TEXTON_FIELDS:
         assert np.all(np.isfinite(np.asarray(getattr(tex, name)))), name
     assert np.min(np.linalg.eigvalsh(np.asarray(tex.Q))) > 0
     assert np.min(np.linalg.eigvalsh(np.asarray(tex.S0))) > 0
@@ -330,7 +329,7 @@ def test_batched_sequences_equal_concatenation_with_boundary_mask():
     concat = fit_texton(
         Y.reshape(2 * T, D), np.concatenate([m1, np.where(m2 >= 0, m2 + 10, -1)]), state_dim=k
     )
-    for name in _texton._TEXTON_FIELDS:
+    for name in internal.TEXTON_FIELDS:
         np.testing.assert_allclose(
             getattr(batched, name), getattr(concat, name), rtol=1e-10, atol=1e-10, err_msg=name
         )
@@ -341,7 +340,7 @@ def test_batched_sequences_equal_concatenation_with_boundary_mask():
     ds = sum([dynamics_stats(Y[0], m1, sub), dynamics_stats(Y[1], m2, sub)])
     assert isinstance(ds, DynamicsStats)
     two_pass = texton_from_stats(sub, ds)
-    for name in _texton._TEXTON_FIELDS:
+    for name in internal.TEXTON_FIELDS:
         np.testing.assert_allclose(
             getattr(two_pass, name), getattr(batched, name), rtol=1e-10, atol=1e-10
         )
@@ -353,7 +352,7 @@ def test_mask_none_and_boolean_mask():
     a = fit_texton(Y, state_dim=2)
     b = fit_texton(Y, np.zeros(40, np.int64), state_dim=2)
     c = fit_texton(Y, np.ones(40, bool), state_dim=2)
-    for name in _texton._TEXTON_FIELDS:
+    for name in internal.TEXTON_FIELDS:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
         np.testing.assert_array_equal(getattr(a, name), getattr(c, name))
 
@@ -593,15 +592,15 @@ def test_frame_terms_split_over_concurrent_executions(workers, monkeypatch):
     st = stack_textons([to_texton(p) for p in ps])
     Y = rng.standard_normal((T, D)) + 0.5
     parts = min(workers, 7)
-    assert _workers._n_parts(workers, st, jnp.asarray(Y)) == parts
+    assert internal.frame_terms_parts(workers, st, jnp.asarray(Y)) == parts
     calls = []  # (thread, rows) of every kernel execution
-    kernel = _frame_terms_mod._frame_terms_jit
+    kernel = internal.frame_terms_jit
 
     def spy(textons, *args, **kwargs):
         calls.append((threading.get_ident(), textons.n_textons))
         return kernel(textons, *args, **kwargs)
 
-    monkeypatch.setattr(_frame_terms_mod, "_frame_terms_jit", spy)
+    monkeypatch.setattr("mtex_jax.texture._frame_terms._frame_terms_jit", spy)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # e.g. a donated buffer that could not be reused
         dyn, obs = frame_terms(st, Y, workers=workers, block_size=8)
@@ -646,11 +645,11 @@ def test_frame_terms_workers_choice_and_validation():
     rng = np.random.default_rng(17)
     st = stack_textons([to_texton(random_texton_np(rng, 4, 2)) for _ in range(3)])
     small, large = jnp.zeros((10, 4)), jnp.zeros((2**20 // 3 + 1, 4))
-    cores = _workers._available_cores()
-    assert _workers._n_parts(None, st, small) == 1  # too little work: one execution
-    assert _workers._n_parts(None, st, large) == min(cores, 3)
-    assert _workers._n_parts(1, st, large) == 1
-    traced = jax.jit(lambda y: jnp.asarray(_workers._n_parts(2, st, y)))(small)
+    cores = internal.available_cores()
+    assert internal.frame_terms_parts(None, st, small) == 1  # too little work: one execution
+    assert internal.frame_terms_parts(None, st, large) == min(cores, 3)
+    assert internal.frame_terms_parts(1, st, large) == 1
+    traced = jax.jit(lambda y: jnp.asarray(internal.frame_terms_parts(2, st, y)))(small)
     assert int(traced) == 1  # under a trace: one computation
     Y = rng.standard_normal((12, 4))
     for bad in (0, -1, 2.5, True, "2"):
@@ -712,19 +711,19 @@ def test_frame_terms_do_not_retrace_for_new_data():
     st = stack_textons([to_texton(random_texton_np(rng, 6, 2)) for _ in range(3)])
     frame_terms(st, rng.standard_normal((40, 6)))
     frame_terms(st, rng.standard_normal((40, 6)), chunk_size=1)
-    n0 = eqx.debug.get_num_traces(_frame_terms_mod._frame_terms_traced)
-    n0_chunk = eqx.debug.get_num_traces(_frame_terms_mod._all_terms_traced)
+    n0 = eqx.debug.get_num_traces(internal.frame_terms_traced)
+    n0_chunk = eqx.debug.get_num_traces(internal.all_terms_traced)
     for _ in range(3):
         st2 = jax.tree.map(lambda a: a * 1.01, st)
         frame_terms(st2, rng.standard_normal((40, 6)))
         frame_terms(st2, rng.standard_normal((40, 6)), chunk_size=1)
-    assert eqx.debug.get_num_traces(_frame_terms_mod._frame_terms_traced) == n0
-    assert eqx.debug.get_num_traces(_frame_terms_mod._all_terms_traced) == n0_chunk
+    assert eqx.debug.get_num_traces(internal.frame_terms_traced) == n0
+    assert eqx.debug.get_num_traces(internal.all_terms_traced) == n0_chunk
     fit_texton(rng.standard_normal((40, 6)), state_dim=2)
-    n1 = eqx.debug.get_num_traces(_fit_mod._fit_texton_traced)
+    n1 = eqx.debug.get_num_traces(internal.fit_texton_traced)
     for _ in range(3):
         fit_texton(rng.standard_normal((40, 6)), rng.integers(-1, 3, 40), state_dim=2)
-    assert eqx.debug.get_num_traces(_fit_mod._fit_texton_traced) == n1
+    assert eqx.debug.get_num_traces(internal.fit_texton_traced) == n1
 
 
 # --------------------------------------------------------------------------------------------
@@ -773,7 +772,7 @@ def test_exact_log_likelihood_of_fitted_texton_equals_dense_gaussian():
     rng = np.random.default_rng(14)
     Y = anisotropic_data(rng, 60, 6)
     tex = fit_texton(Y, state_dim=2)
-    p: dict[str, Any] = {n: np.asarray(getattr(tex, n)) for n in _texton._TEXTON_FIELDS}
+    p: dict[str, Any] = {n: np.asarray(getattr(tex, n)) for n in internal.TEXTON_FIELDS}
     np.testing.assert_allclose(
         float(exact_log_likelihood(tex, Y[:8])), dense_joint_logpdf(p, Y[:8]), atol=1e-8
     )
@@ -1083,7 +1082,7 @@ def test_float32_smoke():
     rng = np.random.default_rng(24)
     Y = anisotropic_data(rng, 300, 10).astype(np.float32)
     tex = fit_texton(Y, np.repeat(np.arange(3), 100), state_dim=4)
-    for name in _texton._TEXTON_FIELDS:
+    for name in internal.TEXTON_FIELDS:
         a = getattr(tex, name)
         assert a.dtype == jnp.float32, name
         assert np.all(np.isfinite(np.asarray(a))), name

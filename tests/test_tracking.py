@@ -8,11 +8,17 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-from mtex_jax.cli._main import main
-from mtex_jax.implicit._camera import Camera, decode_frame, default_joints
-from mtex_jax.implicit._model import ImplicitModel
-from mtex_jax.implicit._tracking import Prior, _systematic, make_problem, track
-from mtex_jax.motion._kinematics import forward_kinematics_arrays
+from mtex_jax.cli import main
+from mtex_jax.implicit import (
+    Camera,
+    ImplicitModel,
+    decode_frame,
+    default_joints,
+    make_problem,
+    track,
+)
+from mtex_jax.internal import Prior, systematic_resample
+from mtex_jax.motion import forward_kinematics_arrays
 
 WINDOW = 10
 HELD_OUT = 2  # 60_03 is tracked; the database holds the other 13 clips
@@ -77,7 +83,7 @@ def test_problem_observations(model, problem):
 def test_systematic_resampling_counts():
     w = jnp.array([0.5, 0.25, 0.125, 0.125, 0.0])
     for seed in range(5):
-        idx = np.asarray(_systematic(jax.random.PRNGKey(seed), w))
+        idx = np.asarray(systematic_resample(jax.random.PRNGKey(seed), w))
         counts = np.bincount(idx, minlength=5)
         expected = 5 * np.asarray(w)  # N = 5 particles: each index N·w_i times, ± 1
         assert np.all(np.abs(counts - expected) < 1.0 + 1e-9)

@@ -6,4 +6,106 @@ functions are built from, exposed so that tests can check them against independe
 without importing private modules. Nothing in the package imports this module.
 """
 
-__all__: list[str] = []
+# the implicit model: the tracker's prior and systematic resampling of particle weights
+from ..implicit._tracking import Prior as Prior, _systematic as systematic_resample
+
+# the implicit model: tree-sampling kernels, for eqx.debug.get_num_traces
+from ..implicit._tree import (
+    _sample_exact_traced as sample_exact_traced,
+    _sample_tree_traced as sample_tree_traced,
+)
+
+# the implicit model: FeatureMap encoding of a clip, padded to share compilations
+from ..implicit._windows import _encode as encode_motion
+
+# DeepMimic: the number of values in one frame of a humanoid3d clip
+from ..io._deepmimic import FRAME_SIZE as DEEPMIMIC_FRAME_SIZE
+
+# rotations: angles wrapped to (-π, π]
+from ..motion._rotation import wrap_angle as wrap_angle
+
+# texton synthesis: whether the bridge recursion is accurate for a texton and length
+from ..texture._bridge import _bridge_usable as bridge_usable
+
+# texton fitting: the traced kernel, for eqx.debug.get_num_traces
+from ..texture._fit import _fit_texton_traced as fit_texton_traced
+
+# frame terms: the jitted kernel (to spy on) and the traced kernels (to count traces)
+from ..texture._frame_terms import (
+    _all_terms_traced as all_terms_traced,
+    _frame_terms_jit as frame_terms_jit,
+    _frame_terms_traced as frame_terms_traced,
+)
+
+# key poses of a texton path: training-segment chains and outlier key-pose pairs
+from ..texture._keyposes import (
+    _instances as key_pose_instances,
+    _key_pair_jumps as key_pair_jumps,
+    _next_segments as next_segments,
+    _usable_key_poses as usable_key_poses,
+)
+
+# block-tridiagonal Cholesky kernels behind block_tridiag_solve (right-hand sides as rows)
+from ..texture._linalg import (
+    _factor as block_tridiag_factor,
+    _solve_rows_fused as solve_rows_fused,
+    _solve_rows_plain as solve_rows_plain,
+    _solve_rows_unbatched as solve_rows_unbatched,
+    _substitute_rows as substitute_rows,
+    _tridiag_solve_rows as tridiag_solve_rows,
+)
+
+# constrained texton synthesis: the masked normal equations and their banded solve
+from ..texture._normal import (
+    _equations as constrained_equations,
+    _solve_constrained as solve_constrained,
+)
+
+# path synthesis: the core computation of a whole texton path (one compilation per size)
+from ..texture._sequence import _path_core as path_core
+
+# texton synthesis noise: Box-Muller standard normals and the polynomial cos/sin of 2πu
+from ..texture._synthesis import _sincos_turn as sincos_turn, _standard_normal as standard_normal
+
+# the array fields of a Texton, in file order
+from ..texture._texton import _TEXTON_FIELDS as TEXTON_FIELDS
+
+# frame terms over threads: usable cores and the number of concurrent executions
+from ..texture._workers import _available_cores as available_cores, _n_parts as frame_terms_parts
+
+# rendering: world-to-plot rotations taking each up axis (0, 1, 2) to plot z
+from ..viz._panel import _TO_PLOT as TO_PLOT
+
+__all__ = [
+    "DEEPMIMIC_FRAME_SIZE",
+    "TEXTON_FIELDS",
+    "TO_PLOT",
+    "Prior",
+    "all_terms_traced",
+    "available_cores",
+    "block_tridiag_factor",
+    "bridge_usable",
+    "constrained_equations",
+    "encode_motion",
+    "fit_texton_traced",
+    "frame_terms_jit",
+    "frame_terms_parts",
+    "frame_terms_traced",
+    "key_pair_jumps",
+    "key_pose_instances",
+    "next_segments",
+    "path_core",
+    "sample_exact_traced",
+    "sample_tree_traced",
+    "sincos_turn",
+    "solve_constrained",
+    "solve_rows_fused",
+    "solve_rows_plain",
+    "solve_rows_unbatched",
+    "standard_normal",
+    "substitute_rows",
+    "systematic_resample",
+    "tridiag_solve_rows",
+    "usable_key_poses",
+    "wrap_angle",
+]
