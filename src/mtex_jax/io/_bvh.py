@@ -5,138 +5,27 @@ from __future__ import annotations
 import itertools
 import os
 import warnings
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..motion import POSITION_CHANNELS, ROTATION_CHANNELS, Motion, Skeleton
+from ..core import MAX_ABS_VALUE, MAX_FRAMES, atomic_write, check_frame_time
+from ..motion import Motion, Skeleton
+from ._bvh_hierarchy import Tokens, parse_hierarchy
 
 __all__ = ["euler_to_quat", "parse_bvh", "quat_to_euler", "read_bvh", "write_bvh"]
 
-_CHANNEL_CANON = {c.lower(): c for c in ROTATION_CHANNELS + POSITION_CHANNELS}
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
 
 
-class _Tokens:
-    """A stream of (token, line number) pairs with helpful errors."""
-
-    def __init__(self, lines: list[str], source: str, stop: int) -> None:
-        self.source = source
-        self._it: Iterator[tuple[str, int]] = (
-            (tok, i + 1) for i, line in enumerate(lines[:stop]) for tok in line.split()
-        )
-        self._peek: tuple[str, int] | None = None
-        self.last_line = max(stop, 1)
-
-    def error(self, line: int, msg: str) -> ValueError:
-        return ValueError(f"{self.source}:{line}: {msg}")
-
-    def next(self, what: str) -> tuple[str, int]:
-        if self._peek is not None:
-            t, self._peek = self._peek, None
-            return t
-        try:
-            return next(self._it)
-        except StopIteration:
-            raise self.error(
-                self.last_line, f"unexpected end of hierarchy, expected {what}"
-            ) from None
-
-    def expect(self, word: str) -> int:
-        tok, line = self.next(repr(word))
-        if tok != word:
-            raise self.error(line, f"expected {word!r}, found {tok!r}")
-        return line
-
-    def number(self, what: str) -> float:
-        tok, line = self.next(what)
-        try:
-            v = float(tok)
-        except ValueError:
-            raise self.error(line, f"non-numeric token {tok!r} where {what} was expected") from None
-        if not np.isfinite(v):
-            raise self.error(line, f"non-finite value {tok!r} for {what}")
-        return v
-
-
-def parse_bvh(text: str, source: str = "<string>") -> Motion:
+def parse_bvh(text: str, source: str = "<string>", *, max_frames: int = MAX_FRAMES) -> Motion:
     """Parse BVH text into a :class:`Motion` (see :func:`read_bvh`)."""
     lines = text.splitlines()
     motion_line = next((i for i, ln in enumerate(lines) if ln.strip().upper() == "MOTION"), None)
     if motion_line is None:
         raise ValueError(f"{source}:{len(lines)}: no MOTION section (file truncated?)")
-    toks = _Tokens(lines, source, motion_line)
-
-    names: list[str] = []
-    parents: list[int] = []
-    offsets: list[tuple[float, float, float]] = []
-    channels: list[tuple[str, ...]] = []
-    end_sites: list[tuple[int, tuple[float, float, float]]] = []
-
-    def offset() -> tuple[float, float, float]:
-        return (toks.number("OFFSET x"), toks.number("OFFSET y"), toks.number("OFFSET z"))
-
-    def joint_body(name: str, parent: int, line: int) -> None:
-        idx = len(names)
-        names.append(name)
-        parents.append(parent)
-        offsets.append((0.0, 0.0, 0.0))
-        channels.append(())
-        toks.expect("{")
-        seen_offset = False
-        while True:
-            tok, ln = toks.next("'}'")
-            if tok == "}":
-                break
-            if tok == "OFFSET":
-                offsets[idx] = offset()
-                seen_offset = True
-            elif tok == "CHANNELS":
-                n = toks.number("channel count")
-                if n != int(n) or not 0 <= n <= 6:
-                    raise toks.error(ln, f"invalid channel count {n:g} for joint {name!r}")
-                chs = []
-                for _ in range(int(n)):
-                    c, cl = toks.next("channel name")
-                    canon = _CHANNEL_CANON.get(c.lower())
-                    if canon is None:
-                        raise toks.error(cl, f"unknown channel {c!r} for joint {name!r}")
-                    if canon in chs:
-                        raise toks.error(cl, f"repeated channel {c!r} for joint {name!r}")
-                    chs.append(canon)
-                channels[idx] = tuple(chs)
-            elif tok == "JOINT":
-                child, cl = toks.next("joint name")
-                joint_body(child, idx, cl)
-            elif tok == "End":
-                toks.expect("Site")
-                toks.expect("{")
-                toks.expect("OFFSET")
-                end_sites.append((idx, offset()))
-                toks.expect("}")
-            else:
-                raise toks.error(ln, f"unknown keyword {tok!r} in joint {name!r}")
-        if not seen_offset:
-            raise toks.error(line, f"joint {name!r} has no OFFSET")
-
-    toks.expect("HIERARCHY")
-    tok, ln = toks.next("'ROOT'")
-    if tok != "ROOT":
-        raise toks.error(ln, f"expected 'ROOT', found {tok!r}")
-    root_name, ln = toks.next("root name")
-    joint_body(root_name, -1, ln)
-    extra = next(toks._it, None)
-    if extra is not None:
-        raise toks.error(extra[1], f"unexpected {extra[0]!r} after the root joint (one ROOT only)")
-
-    try:
-        skeleton = Skeleton(
-            tuple(names), tuple(parents), tuple(offsets), tuple(channels), tuple(end_sites)
-        )
-    except ValueError as e:
-        raise ValueError(f"{source}: invalid skeleton: {e}") from None
+    skeleton = parse_hierarchy(Tokens(lines, source, motion_line))
 
     # --- MOTION section ---------------------------------------------------------------
     i = motion_line + 1
@@ -144,8 +33,13 @@ def parse_bvh(text: str, source: str = "<string>") -> Motion:
     frame_time, i = _header_value(lines, i, "Frame Time:", source, integer=False)
     if n_frames <= 0:
         raise ValueError(f"{source}:{i - 1}: zero frames (Frames: {int(n_frames)})")
+    if n_frames > max_frames:
+        raise ValueError(
+            f"{source}:{i - 1}: Frames: {n_frames:.0f} exceeds the limit of {max_frames:,} frames"
+        )
     if not frame_time > 0:
         raise ValueError(f"{source}:{i}: Frame Time must be positive, got {frame_time:g}")
+    check_frame_time(frame_time, f"{source}:{i}")
     n_frames = int(n_frames)
     data = lines[i : i + n_frames]
     # trailing blank lines are fine; anything else after the frames is an error
@@ -183,6 +77,12 @@ def parse_bvh(text: str, source: str = "<string>") -> Motion:
     if not np.all(np.isfinite(values)):
         k = int(np.nonzero(~np.all(np.isfinite(values), axis=1))[0][0])
         raise ValueError(f"{source}:{i + k + 1}: non-finite value in frame {k}")
+    big = np.abs(values) > MAX_ABS_VALUE
+    if big.any():
+        k = int(np.nonzero(big.any(axis=1))[0][0])
+        raise ValueError(
+            f"{source}:{i + k + 1}: value in frame {k} exceeds {MAX_ABS_VALUE:g} in magnitude"
+        )
     fps = 1.0 / frame_time
     if abs(fps - round(fps)) < 1e-4 * fps:
         fps = float(round(fps))
@@ -331,7 +231,7 @@ def motion_to_channels(motion: Motion) -> np.ndarray:
     return out
 
 
-def read_bvh(path: str | os.PathLike[str]) -> Motion:
+def read_bvh(path: str | os.PathLike[str], *, max_frames: int = MAX_FRAMES) -> Motion:
     """Read a BVH file.
 
     Every joint may have any subset of the six channels in any order; the rotation channels'
@@ -344,14 +244,17 @@ def read_bvh(path: str | os.PathLike[str]) -> Motion:
     Raises:
         ValueError: on malformed input, naming the file and line (truncated file, wrong number
             of values on a frame line, non-numeric or non-finite token, unknown keyword or
-            channel, zero frames, invalid frame time).
+            channel, zero frames, invalid frame time) and on input beyond the limits of
+            :mod:`mtex_jax.core` (more than ``max_frames`` frames or ``MAX_JOINTS`` joints,
+            joints nested deeper than ``MAX_DEPTH``, a frame time outside
+            ``[MIN_FRAME_TIME, MAX_FRAME_TIME]``, a number beyond ``MAX_ABS_VALUE``).
     """
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8", errors="replace")
     except OSError as e:
         raise ValueError(f"{p}: cannot read BVH file: {e.strerror or e}") from None
-    return parse_bvh(text, str(p))
+    return parse_bvh(text, str(p), max_frames=max_frames)
 
 
 def _dfs_order(sk: Skeleton) -> list[int]:
@@ -374,7 +277,8 @@ def write_bvh(path: str | os.PathLike[str], motion: Motion, *, precision: int = 
     Joints are written depth-first (children in index order), so a skeleton whose joints are
     already in depth-first order (every skeleton read from BVH) reads back in the same order.
     Frame values (Euler angles in degrees, positions in file units) are written with
-    ``precision`` decimals; offsets are written exactly.
+    ``precision`` decimals; offsets are written exactly. The file is replaced atomically (a
+    failed write leaves the previous file intact).
     """
     sk = motion.skeleton
     order = _dfs_order(sk)
@@ -391,8 +295,20 @@ def write_bvh(path: str | os.PathLike[str], motion: Motion, *, precision: int = 
     def vec(o: tuple[float, float, float] | np.ndarray) -> str:
         return " ".join(repr(float(x)) for x in o)  # offsets exactly (shortest round trip)
 
-    def emit(ji: int, depth: int) -> None:
+    # depth-first without recursion: ("open", joint, depth) writes a joint's head and queues
+    # its children, end sites and closing brace
+    stack: list[tuple[str, int, int]] = [("open", 0, 0)]
+    while stack:
+        what, ji, depth = stack.pop()
         ind = "\t" * depth
+        if what == "close":
+            for o in ends.get(ji, []):
+                out.append(f"{ind}\tEnd Site")
+                out.append(f"{ind}\t{{")
+                out.append(f"{ind}\t\tOFFSET {vec(o)}")
+                out.append(f"{ind}\t}}")
+            out.append(f"{ind}}}")
+            continue
         kw = "ROOT" if ji == 0 else "JOINT"
         out.append(f"{ind}{kw} {sk.names[ji]}")
         out.append(f"{ind}{{")
@@ -401,16 +317,9 @@ def write_bvh(path: str | os.PathLike[str], motion: Motion, *, precision: int = 
             out.append(
                 f"{ind}\tCHANNELS {len(sk.channels[ji])} {' '.join(sk.channels[ji])}".rstrip()
             )
-        for c in children[ji]:
-            emit(c, depth + 1)
-        for o in ends.get(ji, []):
-            out.append(f"{ind}\tEnd Site")
-            out.append(f"{ind}\t{{")
-            out.append(f"{ind}\t\tOFFSET {vec(o)}")
-            out.append(f"{ind}\t}}")
-        out.append(f"{ind}}}")
+        stack.append(("close", ji, depth))
+        stack.extend(("open", c, depth + 1) for c in reversed(children[ji]))
 
-    emit(0, 0)
     table = motion_to_channels(motion)
     # reorder columns to the depth-first joint order
     starts = np.cumsum([0] + [len(c) for c in sk.channels])
@@ -423,4 +332,6 @@ def write_bvh(path: str | os.PathLike[str], motion: Motion, *, precision: int = 
     out.append(f"Frame Time: {1.0 / motion.fps:.10g}")
     row_fmt = " ".join([fmt] * table.shape[1])
     body = "\n".join(row_fmt % tuple(r) for r in table) if table.shape[1] else ""
-    Path(path).write_text("\n".join(out) + "\n" + body + "\n", encoding="utf-8")
+    text = "\n".join(out) + "\n" + body + "\n"
+    with atomic_write(path, "w", encoding="utf-8") as fh:
+        fh.write(text)

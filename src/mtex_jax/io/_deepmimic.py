@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core import MAX_ABS_VALUE, MAX_FRAME_TIME, MAX_FRAMES, check_frame_time, check_json_depth
 from ..motion import Motion, Skeleton, slerp
 
 __all__ = ["HUMANOID3D", "parse_deepmimic", "read_deepmimic"]
@@ -125,8 +126,9 @@ def _frame_lines(text: str) -> list[int]:
     return lines
 
 
-def parse_deepmimic(text: str, source: str = "<string>") -> Motion:
+def parse_deepmimic(text: str, source: str = "<string>", *, max_frames: int = MAX_FRAMES) -> Motion:
     """Parse DeepMimic JSON motion text (see :func:`read_deepmimic`)."""
+    check_json_depth(text, source)  # json.loads recurses: refuse deep nesting first
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as e:
@@ -138,6 +140,8 @@ def parse_deepmimic(text: str, source: str = "<string>") -> Motion:
     frames = doc["Frames"]
     if not isinstance(frames, list) or len(frames) == 0:
         raise ValueError(f"{source}:1: zero frames")
+    if len(frames) > max_frames:
+        raise ValueError(f"{source}:1: {len(frames):,} frames exceed the limit of {max_frames:,}")
     lines: list[int] | None = None
 
     def where(k: int) -> int:
@@ -160,6 +164,12 @@ def parse_deepmimic(text: str, source: str = "<string>") -> Motion:
     if bad.any():
         k = int(np.nonzero(bad)[0][0])
         raise ValueError(f"{source}:{where(k)}: non-finite value in frame {k}")
+    big = np.nonzero((np.abs(data) > MAX_ABS_VALUE).any(axis=1))[0]
+    if big.size:
+        k = int(big[0])
+        raise ValueError(
+            f"{source}:{where(k)}: value in frame {k} exceeds {MAX_ABS_VALUE:g} in magnitude"
+        )
     dt = data[:, 0]
     # Durations: every keyframe but the last must last > 0 s (the last conventionally 0).
     body = dt[:-1] if len(dt) > 1 else dt
@@ -175,6 +185,21 @@ def parse_deepmimic(text: str, source: str = "<string>") -> Motion:
         raise ValueError(f"{source}:{where(k)}: inconsistent frame time: negative duration")
     vals, counts = np.unique(np.round(body, 9), return_counts=True)
     step = float(vals[np.argmax(counts)])
+    check_frame_time(step, f"{source}:{where(int(np.argmin(np.abs(body - step))))}")
+    long = np.nonzero(body > MAX_FRAME_TIME)[0]
+    if long.size:
+        k = int(long[0])
+        raise ValueError(
+            f"{source}:{where(k)}: keyframe {k} lasts {body[k]:g} s (limit {MAX_FRAME_TIME:g} s)"
+        )
+    total = float(body.sum()) if len(dt) > 1 else 0.0
+    if total / step + 1 > max_frames:
+        k = int(np.argmax(body))
+        raise ValueError(
+            f"{source}:{where(k)}: the keyframes last {total:g} s (frame {k}: {body[k]:g} s); "
+            f"resampled every {step:g} s that is {total / step + 1:,.0f} frames, more than the "
+            f"limit of {max_frames:,}"
+        )
     fps = 1.0 / step
     if abs(fps - round(fps)) < 1e-3 * fps:
         fps = float(round(fps))
@@ -221,7 +246,7 @@ def _resample_keyframes(motion: Motion, times: np.ndarray, fps: float) -> Motion
     return Motion(motion.skeleton, fps, rp_new, rot_new)
 
 
-def read_deepmimic(path: str | os.PathLike[str]) -> Motion:
+def read_deepmimic(path: str | os.PathLike[str], *, max_frames: int = MAX_FRAMES) -> Motion:
     """Read a DeepMimic humanoid3d motion file (JSON).
 
     Each frame is ``[duration, root xyz, root quat wxyz, chest quat, neck quat, right hip
@@ -236,11 +261,15 @@ def read_deepmimic(path: str | os.PathLike[str]) -> Motion:
 
     Raises:
         ValueError: naming the file and line for invalid JSON, a frame of the wrong length, a
-            non-numeric or non-finite value, zero frames, or an inconsistent frame duration.
+            non-numeric or non-finite value, zero frames, or an inconsistent frame duration;
+            and on input beyond the limits of :mod:`mtex_jax.core`: JSON nested deeper than
+            ``MAX_DEPTH`` (refused before parsing, without recursion), more than
+            ``max_frames`` frames after resampling (a keyframe lasting 1e6 s), a frame time
+            outside ``[MIN_FRAME_TIME, MAX_FRAME_TIME]``, a number beyond ``MAX_ABS_VALUE``.
     """
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
         raise ValueError(f"{p}: cannot read DeepMimic file: {e}") from None
-    return parse_deepmimic(text, str(p))
+    return parse_deepmimic(text, str(p), max_frames=max_frames)
