@@ -376,12 +376,22 @@ class FeatureMap(eqx.Module):
 
 
 def load_feature_map(path: str | os.PathLike[str]) -> FeatureMap:
-    """Read a :class:`FeatureMap` written by :meth:`FeatureMap.save`."""
-    arrays, meta = load_arrays_json(path, kind="mtex_jax.FeatureMap", required=("offset", "scale"))
+    """Read a :class:`FeatureMap` written by :meth:`FeatureMap.save`.
+
+    Raises:
+        ValueError: naming the file: not a model file, unknown or too large arrays, NaN or
+            inf values, a non-positive scale, an invalid description.
+    """
+    arrays, meta = load_arrays_json(
+        path, kind="mtex_jax.FeatureMap", required=("offset", "scale"), allowed=()
+    )
+    off, sc = arrays["offset"], arrays["scale"]
+    if not (np.isfinite(off).all() and np.isfinite(sc).all() and (sc > 0).all()):
+        raise ValueError(f"{path}: offset must be finite and scale finite and positive")
     try:
         return FeatureMap.from_arrays_json(arrays, meta)
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") from None
+    except (ValueError, TypeError, KeyError, AttributeError, OverflowError) as e:
+        raise ValueError(f"{path}: invalid feature map file: {e}") from None
 
 
 def _channel_names(sk: Skeleton, has_lp: bool) -> tuple[str, ...]:

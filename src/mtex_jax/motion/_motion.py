@@ -6,13 +6,19 @@ from collections.abc import Sequence
 
 import equinox as eqx
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, Float
 
+from ..core import MAX_FRAMES
 from ._skeleton import Skeleton
 
 __all__ = ["Motion", "concatenate_motions", "slerp"]
 
 ArrayF = Float[Array, "..."] | Float[np.ndarray, "..."]
+
+#: Quaternions whose norm is within this of 1 are normalised by :class:`Motion`; others are
+#: refused (a zero, NaN or inf quaternion always).
+QUAT_NORM_TOL = 1e-3
 
 
 class Motion(eqx.Module):
@@ -42,6 +48,47 @@ class Motion(eqx.Module):
     rotations: ArrayF
     local_positions: ArrayF | None = None
 
+    def __post_init__(self) -> None:
+        # normalise near-unit quaternions (the rest is checked by __check_init__)
+        q, n = self._quaternion_norms()
+        if q is None or n is None or not np.isfinite(n).all():
+            return
+        dev = np.abs(n - 1.0)
+        if dev.max() <= QUAT_NORM_TOL and dev.max() > 8 * np.finfo(q.dtype).eps:
+            unit = (q / n[..., None]).astype(q.dtype)
+            rot = self.rotations
+            self.rotations = unit if isinstance(rot, np.ndarray) else _type_like(rot, unit)
+
+    def _quaternion_norms(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The concrete rotations and their norms, or ``None`` (traced, empty or misshapen)."""
+        rot = self.rotations
+        if isinstance(rot, Tracer) or len(np.shape(rot)) != 3 or np.shape(rot)[2] != 4:
+            return None, None
+        q = np.asarray(rot)
+        if not np.issubdtype(q.dtype, np.floating) or q.size == 0:
+            return None, None
+        return q, np.linalg.norm(q.astype(np.float64), axis=-1)
+
+    def _check_quaternions(self) -> None:
+        """The value check at the door: finite unit quaternions (traced arrays skipped)."""
+        q, n = self._quaternion_norms()
+        if q is None or n is None:
+            return
+        bad = ~np.isfinite(n) | (n < 1e-6) | (np.abs(n - 1.0) > QUAT_NORM_TOL)
+        if not bad.any():
+            return
+        t, j = (int(i[0]) for i in np.nonzero(bad))
+        if not np.isfinite(n[t, j]):
+            what = "NaN or inf"
+        elif n[t, j] < 1e-6:
+            what = "zero"
+        else:
+            what = f"norm {n[t, j]:.6g}, not a unit"
+        raise ValueError(
+            f"Motion.rotations: frame {t}, joint {j} ({self.skeleton.names[j]!r}): {what} "
+            f"quaternion {q[t, j].tolist()} (norms within {QUAT_NORM_TOL:g} of 1 are normalised)"
+        )
+
     def __check_init__(self) -> None:
         if not isinstance(self.skeleton, Skeleton):
             raise TypeError(
@@ -64,6 +111,7 @@ class Motion(eqx.Module):
                 raise ValueError(
                     f"Motion.local_positions must have shape ({rs[0]}, {j}, 3), got {ls}"
                 )
+        self._check_quaternions()
 
     # ------------------------------------------------------------------ basic facts
     @property
@@ -110,12 +158,14 @@ class Motion(eqx.Module):
         return Motion(skeleton, self.fps, self.root_positions, self.rotations, self.local_positions)
 
     # ------------------------------------------------------------------ resampling
-    def resample(self, fps: float) -> Motion:
+    def resample(self, fps: float, *, max_frames: int = MAX_FRAMES) -> Motion:
         """Resample to another frame rate over the same time span.
 
         Root positions (and local positions) are interpolated linearly; rotations by spherical
         linear interpolation (slerp) between the two neighbouring frames. The new clip has
-        ``floor(duration · fps) + 1`` frames starting at the same time.
+        ``floor(duration · fps) + 1`` frames starting at the same time, at most ``max_frames``
+        (default :data:`~mtex_jax.core.MAX_FRAMES`; more is a ``ValueError`` before anything
+        is allocated).
         """
         if not (np.isfinite(fps) and fps > 0):
             raise ValueError(f"resample: fps must be positive and finite, got {fps!r}")
@@ -123,7 +173,13 @@ class Motion(eqx.Module):
         t_old = m.n_frames
         if t_old == 1:
             return Motion(m.skeleton, float(fps), m.root_positions, m.rotations, m.local_positions)
-        n_new = int(np.floor(m.duration * fps + 1e-9)) + 1
+        n_float = np.floor(m.duration * fps + 1e-9) + 1
+        if not n_float <= max_frames:
+            raise ValueError(
+                f"resample: {m.duration:g} s at {fps:g} fps would be {n_float:,.0f} frames, "
+                f"more than the limit of {max_frames:,} (max_frames)"
+            )
+        n_new = int(n_float)
         u = np.arange(n_new) * (self.fps / fps)
         i0 = np.clip(np.floor(u).astype(np.int64), 0, t_old - 2)
         frac = np.clip(u - i0, 0.0, 1.0)
@@ -132,6 +188,13 @@ class Motion(eqx.Module):
         rot = slerp(q[i0], q[i0 + 1], frac[:, None])
         lp = None if m.local_positions is None else lin(m.local_positions)
         return Motion(m.skeleton, float(fps), lin(m.root_positions), rot, lp)
+
+
+def _type_like(like: object, a: np.ndarray) -> ArrayF:
+    """``a`` as a JAX array when ``like`` is one (NumPy otherwise)."""
+    import jax.numpy as jnp
+
+    return jnp.asarray(a) if not isinstance(like, np.ndarray) else a
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
