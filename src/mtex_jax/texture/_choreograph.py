@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ..core import check_key
 from ._frame_terms import frame_terms, init_terms
 from ._keyposes import _instances
 from ._model import MotionTexture
@@ -93,6 +94,7 @@ def choreograph(
     Returns:
         a :class:`Synthesis` whose first and last two frames are the given poses.
     """
+    check_key(key, "choreograph", allow_none=True)
     _check_texture(texture)
     _check_options(weighting, residual)
     D = texture.obs_dim

@@ -90,6 +90,11 @@ def _check_data(
                 f"learn: sequence {i} has {y.shape[0]} frames, which cannot be cut into "
                 f"segments of {config.tmin}..{tmax} frames"
             )
+    if dim == 0 and fm is not None:
+        raise ValueError(
+            "learn: the clip does not move (every observation channel is constant in every "
+            "clip); there is no motion to learn"
+        )
     if config.state_dim > dim:
         raise ValueError(
             f"learn: state_dim = {config.state_dim} exceeds the observation dimension {dim}"

@@ -19,6 +19,7 @@ from ._config import LearnConfig
 from ._forward import log_likelihood
 from ._segment import Segmentation, segment
 from ._texton import Texton
+from ._validate import TEXTURE_MEMBERS, check_texture_arrays
 
 FORMAT_VERSION = 1
 _KIND = "mtex_jax.MotionTexture"
@@ -177,9 +178,12 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
 
     Raises:
         ValueError: naming the file and the problem (corrupt or truncated archive, another kind
-            of file, unsupported format version, missing or inconsistent arrays).
+            of file, unsupported format version, missing, unknown, too large or inconsistent
+            arrays, NaN or inf values, a transition matrix or ``pi`` that is negative or not
+            stochastic).
     """
-    arrays, meta = load_arrays_json(path, kind=_KIND, required=_REQUIRED)
+    arrays, meta = load_arrays_json(path, kind=_KIND, required=_REQUIRED, allowed=TEXTURE_MEMBERS)
+    check_texture_arrays(path, arrays)
     if meta.get("format_version") != FORMAT_VERSION:
         raise ValueError(
             f"{path}: format version {meta.get('format_version')!r} is not supported "
@@ -212,7 +216,7 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
             config=cfg,
             threshold=float(meta["threshold"]),
         )
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as e:
         raise ValueError(f"{path}: invalid motion texture file: {e}") from None
 
 

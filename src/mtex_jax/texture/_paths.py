@@ -30,6 +30,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
+from ..core import MAX_GENERATED_FRAMES, check_count, check_key
 from ._model import MotionTexture
 
 __all__ = ["path_cost", "path_of_length", "random_path", "shortest_path"]
@@ -111,12 +112,10 @@ def random_path(
     Returns:
         ``(n_textons,)`` int64 labels.
     """
+    check_key(key, "random_path")
     M = _transition_matrix(texture)
     n = M.shape[0]
-    if isinstance(n_textons, bool) or not isinstance(n_textons, int | np.integer):
-        raise TypeError(f"n_textons must be an int, got {n_textons!r}")
-    if n_textons < 1:
-        raise ValueError(f"n_textons must be >= 1, got {n_textons}")
+    check_count(n_textons, "n_textons", MAX_GENERATED_FRAMES)
     with np.errstate(divide="ignore"):
         log_M = np.log(M)
     k_first, k_walk = jax.random.split(key)
@@ -197,6 +196,7 @@ def shortest_path(
     Raises:
         ValueError: ``v`` is unreachable from ``u``, or bad indices / matrix.
     """
+    check_key(key, "shortest_path", allow_none=True)
     M = _transition_matrix(texture)
     n = M.shape[0]
     u, v = _label("u", u, n), _label("v", v, n)

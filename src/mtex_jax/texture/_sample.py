@@ -9,8 +9,10 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
+from ..core import MAX_GENERATED_FRAMES, check_count, check_key
 from ._checks import _as_float_array, _check_finite, _psd_cholesky
 from ._texton import Texton, _check_texton
+from ._validate import check_finite_output
 
 # --------------------------------------------------------------------------------------------
 # Sampling (MT Fig. 4)
@@ -42,10 +44,16 @@ def sample_texton(
 
     Returns:
         ``(states (L, k), observations (L, D))``; ``states[0] = x1``, ``states[1] = x2``.
+
+    Raises:
+        ValueError: bad arguments, or a result that overflows (an unstable texton, spectral
+            radius > 1, sampled for too long; the message names the radius).
     """
+    check_key(key, "sample_texton")
     texton = _check_texton("texton", texton, stacked=False)
     if isinstance(length, bool) or not isinstance(length, int | np.integer) or length < 2:
         raise ValueError(f"length must be an int >= 2, got {length!r}")
+    check_count(length, "length", MAX_GENERATED_FRAMES)
     k = texton.state_dim
     if (x1 is None) != (x2 is None):
         raise ValueError("give both x1 and x2, or neither (then they are sampled from m0, S0)")
@@ -58,7 +66,9 @@ def sample_texton(
                 raise ValueError(f"{name} must have shape ({k},), got {tuple(v.shape)}")
             _check_finite(name, v)
         xs = (a, b)
-    return _sample_jit(texton, key, int(length), xs, bool(observation_noise))
+    states, obs = _sample_jit(texton, key, int(length), xs, bool(observation_noise))
+    check_finite_output(obs, texton, "sample_texton")
+    return states, obs
 
 
 def _sample_impl(

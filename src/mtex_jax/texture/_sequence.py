@@ -39,6 +39,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ..core import MAX_GENERATED_FRAMES, check_count, check_key
 from ..motion import Motion
 from ._keyposes import _instances, _successor
 from ._model import MotionTexture
@@ -117,9 +118,7 @@ def _check_options(weighting: Any, residual: Any) -> None:
 def _check_n_frames(n_frames: Any) -> int:
     if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
         raise TypeError(f"n_frames must be an int, got {n_frames!r}")
-    if n_frames < 4:
-        raise ValueError(f"n_frames must be >= 4, got {n_frames}")
-    return int(n_frames)
+    return check_count(n_frames, "n_frames", MAX_GENERATED_FRAMES, low=4)
 
 
 def _check_pair(name: str, pose: Any, D: int) -> np.ndarray:
@@ -350,6 +349,7 @@ def synthesize(
     Raises:
         ValueError / TypeError: bad path, lengths, poses or sizes.
     """
+    check_key(key, "synthesize", allow_none=True)
     _check_texture(texture)
     _check_options(weighting, residual)
     n_t = texture.n_textons

@@ -43,9 +43,11 @@ from jax import lax
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ..core import MAX_GENERATED_FRAMES, check_count, check_key
 from ._bridge import _bridge, _bridge_usable
 from ._normal import _equations, _observe, _solve_constrained
 from ._texton import Texton
+from ._validate import check_finite_output
 
 Weighting = Literal["whitened", "paper"]
 
@@ -126,8 +128,13 @@ def synthesize_texton(
         given poses (the poses themselves when they lie in the texton's subspace).
 
     Raises:
-        ValueError: bad shapes, non-finite poses, unknown weighting or too short ``length``.
+        ValueError: bad shapes, non-finite poses, unknown weighting, too short or too long
+            ``length`` (``MAX_GENERATED_FRAMES``), or a result that overflows (an unstable
+            texton, spectral radius > 1, run noise-driven for too long: the message names
+            the radius; learn with ``LearnConfig(rho_max=1.0)``).
+        TypeError: ``key`` is not a PRNG key (nor ``None``).
     """
+    check_key(key, "synthesize_texton", allow_none=True)
     if not isinstance(texton, Texton) or texton.is_stacked:
         raise ValueError("texton must be a single (unstacked) Texton")
     if weighting not in ("whitened", "paper"):
@@ -138,6 +145,7 @@ def synthesize_texton(
     min_len = 2 if end is None else 4
     if length < min_len:
         raise ValueError(f"length must be >= {min_len}, got {length}")
+    check_count(length, "length", MAX_GENERATED_FRAMES)
     D = texton.obs_dim
     start_a = _check_frames("start", start, (2, D))
     end_a = None if end is None else _check_frames("end", end, (2, D))
@@ -155,8 +163,11 @@ def synthesize_texton(
         fixed_a = (mask, poses)
     # the noise is drawn inside the jitted core: one dispatch per call, not two
     if end_a is None and fixed_a is None:
-        return _noise_driven_key_jit(texton, key, length, start_a)
-    return _constrained_key_jit(texton, key, length, start_a, end_a, fixed_a, weighting)
+        out = _noise_driven_key_jit(texton, key, length, start_a)
+    else:
+        out = _constrained_key_jit(texton, key, length, start_a, end_a, fixed_a, weighting)
+    check_finite_output(out, texton, "synthesize_texton")
+    return out
 
 
 def _sincos_turn(u: Array) -> tuple[Array, Array]:
