@@ -59,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
+from ..core import MAX_GENERATED_FRAMES, check_count, check_key
 from ..motion import FeatureMap, Motion
 from ._tree import _sample_exact_jit, _sample_tree_jit, _synthesize_jit
 from ._windows import (
@@ -318,6 +319,7 @@ class ImplicitModel(eqx.Module):
         if leaf not in ("uniform", "weighted"):
             raise ValueError(f"sample: leaf must be 'uniform' or 'weighted', got {leaf!r}")
         _check_candidates(candidates, "sample")
+        check_key(key, "sample")
         probes, beta_a, single = self._prepare(probes, beta, "sample")
         idx = _sample_tree_jit(self, key, probes, beta_a, leaf, int(candidates))
         succ = self.successors[idx]
@@ -339,6 +341,7 @@ class ImplicitModel(eqx.Module):
         Returns:
             example indices ``(N,)`` and their successor pose vectors ``(N, P)``.
         """
+        check_key(key, "sample_exact")
         probes, beta_a, single = self._prepare(probes, beta, "sample_exact")
         idx = _sample_exact_jit(self, key, probes, beta_a)
         succ = self.successors[idx]
@@ -414,11 +417,13 @@ class ImplicitModel(eqx.Module):
     ) -> tuple[Float[Array, "T D"], Int[Array, " n_frames"]]:
         """Like :meth:`synthesize` but returns observation vectors ``(d + n_frames, D)`` (seed
         then generated, FeatureMap units) and the sampled example of each generated frame."""
+        check_key(key, "synthesize")
         _check_beta(beta, "synthesize")
         if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
             raise ValueError(f"synthesize: n_frames must be an integer, got {n_frames!r}")
         if n_frames < 1:
             raise ValueError(f"synthesize: n_frames must be ≥ 1, got {n_frames}")
+        check_count(n_frames, "synthesize: n_frames", MAX_GENERATED_FRAMES)
         if leaf not in ("uniform", "weighted"):
             raise ValueError(f"synthesize: leaf must be 'uniform' or 'weighted', got {leaf!r}")
         if sampler not in ("tree", "exact"):

@@ -47,6 +47,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
+from ..core import MAX_GENERATED_FRAMES, MAX_PARTICLES, check_count, check_key
 from ..motion import (
     Motion,
     forward_kinematics,
@@ -137,6 +138,7 @@ def make_problem(
     Raises:
         ValueError: clip too short, bad arguments, non-finite values.
     """
+    check_key(key, "make_problem")
     fm = model.feature_map
     fm._check_motion(motion)
     d = model.window
@@ -329,6 +331,9 @@ def track(
         raise ValueError(f"track: n_particles must be an integer, got {n_particles!r}")
     if n_particles < 1:
         raise ValueError(f"track: n_particles must be ≥ 1, got {n_particles}")
+    check_key(key, "track")
+    check_count(n_particles, "track: n_particles", MAX_PARTICLES)
+    check_count(problem.n_frames, "track: frames to track", MAX_GENERATED_FRAMES)
     if not (np.isfinite(beta) and beta > 0):
         raise ValueError(f"track: beta must be positive and finite, got {beta}")
     for name, v in (("noise", noise), ("cv_noise", cv_noise)):
