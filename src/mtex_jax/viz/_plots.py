@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from ..core import atomic_write
+
 __all__ = ["plot_timeline"]
 
 
@@ -73,5 +75,6 @@ def plot_timeline(
     ax.set_xlabel("time (s)")
     ax.set_title(title or f"texton labels over time ({n_t} textons)")
     fig.tight_layout()
-    fig.savefig(p)
+    with atomic_write(p, "wb") as fh:
+        fig.savefig(fh, format=p.suffix.lstrip(".").lower() or "png")
     return p

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..core import atomic_write
 from ..motion import Motion
 
 if TYPE_CHECKING:
@@ -257,16 +258,17 @@ def render_gif(
     entries[near_white] = 255  # keep the background pure white
     palette.putpalette(entries.astype(np.uint8).ravel().tolist())
     frames = [draw(int(i)).quantize(palette=palette, dither=Image.Dither.NONE) for i in shown]
-    frames[0].save(
-        out,
-        format="GIF",
-        save_all=True,
-        append_images=frames[1:],
-        duration=_gif_durations(len(frames), rate),
-        loop=0,
-        disposal=1,
-        optimize=False,
-    )
+    with atomic_write(out, "wb") as fh:  # a failed render leaves an older file intact
+        frames[0].save(
+            fh,
+            format="GIF",
+            save_all=True,
+            append_images=frames[1:],
+            duration=_gif_durations(len(frames), rate),
+            loop=0,
+            disposal=1,
+            optimize=False,
+        )
     return out
 
 
@@ -397,5 +399,6 @@ def render_filmstrip(
         fontsize=7,
         color="#808080",
     )
-    fig.savefig(out, format="png", dpi=dpi, facecolor="white")
+    with atomic_write(out, "wb") as fh:
+        fig.savefig(fh, format="png", dpi=dpi, facecolor="white")
     return out
