@@ -10,6 +10,7 @@ import argparse
 import time
 from pathlib import Path
 
+from ..core import atomic_write
 from ._validators import non_negative, positive, positive_int
 
 __all__ = ["register"]
@@ -178,8 +179,11 @@ def _plot(path: str, frames, imp, cv, n: int, name: str) -> None:
     ax.set_title(f"tracking {Path(name).name}", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    try:
+        with atomic_write(path, "wb") as fh:
+            fig.savefig(fh, format=Path(path).suffix.lstrip(".").lower() or "png")
+    finally:
+        plt.close(fig)
 
 
 def register(subparsers) -> None:

@@ -59,11 +59,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mtex`` console script; returns the exit status.
 
     The error contract: every error is one line on stderr (``mtex: error: ...``) and exit
-    status 2: bad arguments, unreadable or malformed files (naming the file and line), and
-    anything else that goes wrong (as ``internal error``; set ``MTEX_DEBUG=1`` to see the
-    traceback instead). An interrupt (Ctrl-C) is one line and status 130. When the reader of
+    status 2: bad arguments, unreadable or malformed files (naming the file and line), input
+    beyond the limits of :mod:`mtex_jax.core`, and anything else that goes wrong (as
+    ``internal error``; set ``MTEX_DEBUG=1`` to see the traceback instead). An interrupt
+    (Ctrl-C), also while the program starts, is one line and status 130. When the reader of
     the output goes away (``mtex examples | head -1``) the command stops quietly, status 0.
+    No traceback reaches the user.
     """
+    try:
+        return _run(argv)
+    except BrokenPipeError:
+        _quiet_stdout()
+        return 0
+    except KeyboardInterrupt:
+        _say("mtex: interrupted")
+        return 130
+    except (ValueError, TypeError, OSError, ImportError, UserError) as e:
+        _say(f"mtex: error: {_one_line(e)}")
+        return 2
+    except (RecursionError, MemoryError) as e:
+        _say(f"mtex: error: input too large or too deeply nested ({type(e).__name__})")
+        return 2
+    except Exception as e:
+        if os.environ.get("MTEX_DEBUG"):
+            raise
+        _say(
+            f"mtex: error: internal error: {type(e).__name__}: {_one_line(e)} "
+            "(set MTEX_DEBUG=1 for the traceback)"
+        )
+        return 2
+
+
+def _run(argv: Sequence[str] | None) -> int:
     try:
         args = _parser().parse_args(argv)
     except SystemExit as e:  # --help, --version, or a usage error (printed as one line)
@@ -76,37 +103,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         _parser().print_help()
         return 2
+    code = int(args.func(args))
+    sys.stdout.flush()
+    return code
+
+
+def _quiet_stdout() -> None:
+    """The reader closed the pipe: point stdout at devnull so that the interpreter's final
+    flush does not report the same error again."""
     try:
-        code = int(args.func(args))
-        sys.stdout.flush()
-        return code
-    except BrokenPipeError:
-        # the reader closed the pipe: stop quietly; point stdout at devnull so that the
-        # interpreter's final flush does not report the same error again
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
-        return 0
-    except KeyboardInterrupt:
-        print("mtex: interrupted", file=sys.stderr)
-        return 130
-    except (ValueError, TypeError, OSError, ImportError, UserError) as e:
-        print(f"mtex: error: {_one_line(e)}", file=sys.stderr)
-        return 2
-    except (RecursionError, MemoryError) as e:
-        print(
-            f"mtex: error: input too large or too deeply nested ({type(e).__name__})",
-            file=sys.stderr,
-        )
-        return 2
-    except Exception as e:
-        if os.environ.get("MTEX_DEBUG"):
-            raise
-        print(
-            f"mtex: error: internal error: {type(e).__name__}: {_one_line(e)} "
-            "(set MTEX_DEBUG=1 for the traceback)",
-            file=sys.stderr,
-        )
-        return 2
+    except (OSError, ValueError, AttributeError):
+        pass  # not a real file (tests, embedding): nothing will be flushed at exit
+
+
+def _say(line: str) -> None:
+    """One line on stderr; a closed stderr is ignored (there is nobody to tell)."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

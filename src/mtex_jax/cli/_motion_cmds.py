@@ -37,8 +37,12 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _cmd_render(args: argparse.Namespace) -> int:
     from ..viz import render_filmstrip, render_gif
 
-    m = read_source(args.file)
     out = Path(args.output)
+    if out.suffix.lower() not in (".gif", ".png"):
+        raise ValueError(
+            f"-o/--output must end in .gif (animation) or .png (filmstrip), got {str(out)!r}"
+        )
+    m = read_source(args.file)
     traj = args.trajectories.split(",") if args.trajectories else None
     t0 = time.perf_counter()
     if out.suffix.lower() == ".png":

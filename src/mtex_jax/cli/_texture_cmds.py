@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core import MAX_GENERATED_FRAMES
 from ._validators import SOURCE_HELP, frames_of_seconds, read_source
 
 __all__ = ["register"]
@@ -23,6 +24,11 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         raise ValueError("the clips have different frame rates; choose one with --fps")
     if args.threshold is not None and args.textons is not None:
         raise ValueError("give --threshold or --textons, not both")
+    if args.tmin is not None and args.tmax is not None and args.tmax < args.tmin:
+        raise ValueError(
+            f"--tmax ({args.tmax:g} s) must be at least --tmin ({args.tmin:g} s); "
+            "both are in seconds"
+        )
     cfg = LearnConfig(
         tmin=frames_of_seconds(args.tmin, fps, "tmin") or 3,
         tmax=frames_of_seconds(args.tmax, fps, "tmax"),
@@ -150,11 +156,18 @@ def _load_model(path: str):
     return tex
 
 
+def _check_outputs(out: str, gif: str | None) -> None:
+    """Refuse output names of the wrong kind before any work is done."""
+    if not str(out).lower().endswith(".bvh"):
+        raise ValueError(f"-o/--output must be a .bvh file, got {out!r}")
+    if gif is not None and not str(gif).lower().endswith(".gif"):
+        raise ValueError(f"--gif must be a .gif file, got {gif!r}")
+
+
 def _write_outputs(syn, out: str, gif: str | None, title: str) -> None:
     from ..io import write_bvh
 
-    if not str(out).lower().endswith(".bvh"):
-        raise ValueError(f"-o/--output must be a .bvh file, got {out!r}")
+    _check_outputs(out, gif)
     assert syn.motion is not None
     write_bvh(out, syn.motion)
     fps = syn.motion.fps
@@ -175,12 +188,15 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
     from ..texture import synthesize
 
+    _check_outputs(args.output, args.gif)
     tex = _load_model(args.model)
     assert tex.feature_map is not None  # checked by _load_model
     fps = tex.feature_map.fps
     n = args.frames if args.frames is not None else round(10.0 * fps)
     if n < 4:
         raise ValueError(f"--frames must be >= 4, got {n}")
+    if n > MAX_GENERATED_FRAMES:
+        raise ValueError(f"--frames {n:,} exceeds the limit of {MAX_GENERATED_FRAMES:,}")
     t0 = time.perf_counter()
     syn = synthesize(jax.random.key(args.seed), tex, n_frames=n)
     print(
@@ -192,13 +208,17 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 def _clip_frame(spec: str, tex) -> tuple[np.ndarray, np.ndarray, float]:
     """``CLIP:FRAME`` -> observation pair (2, D), root position and heading at that frame."""
+    # split on the last colon: CLIP may itself hold one (example:NAME, C:\\path)
     clip, sep, frame_s = spec.rpartition(":")
-    if not sep or not clip:
-        raise ValueError(f"expected CLIP:FRAME (e.g. example:dance_a:10), got {spec!r}")
     try:
         frame = int(frame_s)
     except ValueError:
-        raise ValueError(f"{spec!r}: FRAME must be an integer, got {frame_s!r}") from None
+        frame = None
+    if not sep or not clip or frame is None:
+        raise ValueError(
+            f"expected CLIP:FRAME; FRAME must be an integer (e.g. example:dance_a:10 or "
+            f"salsa.bvh:120), got {spec!r}; add the frame: {spec}:0"
+        )
     m = read_source(clip)
     fm = tex.feature_map
     if m.fps != fm.fps:
@@ -218,6 +238,7 @@ def _cmd_choreograph(args: argparse.Namespace) -> int:
 
     from ..texture import choreograph
 
+    _check_outputs(args.output, args.gif)
     tex = _load_model(args.model)
     start, pos, heading = _clip_frame(args.start, tex)
     end, _, _ = _clip_frame(args.end, tex)
