@@ -223,3 +223,22 @@ def test_marginal_at_least_best_path_on_held_out_salsa(cmu_motions):
         T = m.n_frames
         np.testing.assert_allclose(tex.log_likelihood(m, per_frame=True), ll / T, rtol=1e-12)
         np.testing.assert_allclose(float(tex.segment(m).score), best, rtol=1e-12)
+
+
+def test_fallback_paths_agree_with_brute_force(monkeypatch):
+    """The exact fallbacks (gathered windows; the N×N logsumexp of the transition) give the
+    brute-force value, also with transition probabilities of e^-2000 (shifted per column)."""
+    import mtex_jax.texture._forward as fwd
+
+    T, n_t, tmin, tmax = 12, 3, 3, 6
+    tex, log_M, log_pi, Y = _problem(T, n_t, 21)
+    log_M = log_M.copy()
+    log_M[0, 1] = log_M[2, 1] = -2000.0
+    log_M[1, 1] = -2500.0  # column 1: every entry e^-2000 or below
+    want, _, _ = brute_force(tex, log_M, log_pi, Y, tmin, tmax)
+    fast = float(log_likelihood(tex, log_M, log_pi, jnp.asarray(Y), tmin, tmax))
+    np.testing.assert_allclose(fast, want, atol=1e-8 * abs(want))
+    monkeypatch.setattr(fwd, "_FORCE_EXACT", True)
+    jax.clear_caches()
+    slow = float(log_likelihood(tex, log_M, log_pi, jnp.asarray(Y), tmin, tmax))
+    np.testing.assert_allclose(slow, want, atol=1e-8 * abs(want))

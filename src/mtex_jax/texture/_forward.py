@@ -17,7 +17,10 @@ Viterbi recursion of :func:`viterbi_segments` with logsumexp in place of max: th
 blocks of ``tmin`` ends. Inside a block, the window of candidate starts of every end is
 gathered (in chunks of starts, with a running maximum, so the memory stays bounded even for
 ``tmax = None``) and reduced by a logsumexp that is exact (no underflow of the window's largest
-term) and has finite gradients where a window holds no feasible start.
+term) and has finite gradients where a window holds no feasible start. The transition step
+``logsumexp_l α(e, l) + log M[l, i]`` is one matrix product in linear space, ``exp(α − max) ·
+exp(log M − column max)``, with the ``(P, N, N)`` logsumexp as the exact fallback if a column's
+terms all underflow.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from ._texton import Texton
 __all__ = ["forward_log_likelihood", "log_likelihood"]
 
 _GATHER_BUDGET = 1 << 21  # elements of one gathered (ends, starts, textons) chunk
+_FORCE_EXACT = False  # tests: always take the exact (slower) transition path
 
 
 def _safe_logsumexp(x: Array, axis: int) -> Array:
@@ -91,8 +95,7 @@ def forward_log_likelihood(
     bbuf = jnp.full((tmax + Tp + 1, n_t), neg, dtype).at[tmax].set(b0_all[0] + log_pi)
     rows = jnp.arange(P)[:, None] + jnp.arange(Wc)[None, :]  # (P, Wc)
 
-    def block(bbuf, s):
-        win = lax.dynamic_slice(bbuf, (s + 1, 0), (tmax, n_t))  # b in [s − tmax + 1, s]
+    def gathered(win):
         win = jnp.concatenate([win, jnp.full((nc * Wc - Wn, n_t), neg, dtype)], axis=0)
 
         def chunk(carry, c):
@@ -107,10 +110,34 @@ def forward_log_likelihood(
         (m, acc), _ = lax.scan(chunk, init, jnp.arange(nc))
         pos = acc > 0
         safe_m = jnp.where(jnp.isfinite(m), m, 0.0)
-        lse = jnp.where(pos, jnp.log(jnp.where(pos, acc, 1.0)) + safe_m, neg)
+        return jnp.where(pos, jnp.log(jnp.where(pos, acc, 1.0)) + safe_m, neg)
+
+    col = jnp.max(log_M, axis=0)  # per column shift, so tiny probabilities do not underflow
+    col = jnp.where(jnp.isfinite(col), col, 0.0)
+    M_lin = jnp.exp(log_M - col)
+    M_pos = jnp.isfinite(log_M).astype(dtype)
+
+    def transition(v):
+        # logsumexp_l v(e, l) + log M[l, i] as one GEMM in linear space, shifted by the row's
+        # maximum; exact unless a column's terms all underflow where one is finite (then the
+        # (P, N, N) logsumexp)
+        top = lax.stop_gradient(jnp.max(v, axis=1, keepdims=True))
+        top = jnp.where(jnp.isfinite(top), top, 0.0)
+        total = jnp.exp(v - top) @ M_lin
+        pos = total > 0
+        fast = jnp.where(pos, jnp.log(jnp.where(pos, total, 1.0)) + top + col, neg)
+        feasible = (jnp.isfinite(v).astype(dtype) @ M_pos) > 0
+        exact = jnp.all(pos | ~feasible) & (not _FORCE_EXACT)
+        return lax.cond(
+            exact, lambda v: fast, lambda v: _safe_logsumexp(v[:, :, None] + log_M[None], 1), v
+        )
+
+    def block(bbuf, s):
+        win = lax.dynamic_slice(bbuf, (s + 1, 0), (tmax, n_t))  # b in [s − tmax + 1, s]
+        lse = gathered(win)
         v = lax.dynamic_slice(a_all, (s, 0), (P, n_t)) + lse
         v = jnp.where((s + jnp.arange(P) < T)[:, None], v, neg)
-        h = _safe_logsumexp(v[:, :, None] + log_M[None], axis=1)  # (P, N)
+        h = transition(v)  # (P, N): logsumexp_l v(e, l) + log M[l, i]
         bnew = lax.dynamic_slice(b0_all, (s + 1, 0), (P, n_t)) + h
         bbuf = lax.dynamic_update_slice(bbuf, bnew, (tmax + s + 1, 0))
         return bbuf, v
