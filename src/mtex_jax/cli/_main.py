@@ -20,7 +20,8 @@ __all__ = ["main"]
 # its sub-commands. A new command family is a module with a ``register`` function, listed here.
 _COMMANDS = (
     "_motion_cmds",  # info, render, examples
-    "_texture_cmds",  # learn, segment, demo, synth, choreograph
+    "_demo",  # demo
+    "_texture_cmds",  # learn, segment, synth, choreograph
     "_implicit",  # implicit-synth, track
     "_evaluate",  # evaluate
 )

@@ -1,4 +1,5 @@
-"""``mtex learn``, ``segment``, ``demo``, ``synth``, ``choreograph``: the Motion Texture."""
+"""``mtex learn``, ``segment``, ``synth``, ``choreograph``: the Motion Texture (``demo`` is in
+``_demo``)."""
 
 from __future__ import annotations
 
@@ -84,66 +85,6 @@ def _cmd_segment(args: argparse.Namespace) -> int:
             title=f"texton labels of {args.clip}",
         )
         print(f"wrote {args.output}")
-    return 0
-
-
-def _cmd_demo(args: argparse.Namespace) -> int:
-    """The main job on the embedded default data: learn a texture, synthesise a new dance."""
-    import jax
-
-    from ..io import example_names, load_example, write_bvh
-    from ..texture import LearnConfig, learn, synthesize, texture_summary
-    from ..viz import plot_timeline, render_gif
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    fps = 30.0
-    names = example_names()
-    motions = [load_example(n) for n in names]
-    total = sum(m.duration for m in motions)
-    print(f"embedded clips: {len(names)} ({', '.join(names)}), {total:.1f} s of motion")
-    cfg = LearnConfig(tmin=18, tmax=54, state_dim=6, fps=fps, threshold=args.threshold, max_iter=10)
-    print(
-        f"learning a motion texture at {fps:g} Hz: segments of {cfg.tmin}-{cfg.tmax} frames "
-        f"({cfg.tmin / fps:.1f}-{(cfg.tmax or 0) / fps:.1f} s), state dimension {cfg.state_dim}",
-        flush=True,
-    )
-    tex = learn(motions, cfg, verbose=True)
-    tex.save(out / "texture.npz")
-    print(texture_summary(tex))
-    segs = np.asarray(tex.segments)
-    rows = [
-        [tuple(int(v) for v in r[1:]) for r in segs[segs[:, 0] == s]] for s in range(len(names))
-    ]
-    plot_timeline(
-        rows,
-        out / "timeline.png",
-        fps=fps,
-        n_textons=tex.n_textons,
-        names=names,
-        title="texton labels of the embedded clips (MT Fig. 2)",
-    )
-    n_frames = max(4, round(args.seconds * fps))
-    print(f"synthesising a new dance: {n_frames} frames ({n_frames / fps:.1f} s), seed {args.seed}")
-    new = synthesize(jax.random.key(args.seed), tex, n_frames=n_frames)
-    assert new.motion is not None
-    write_bvh(out / "new_dance.bvh", new.motion)
-    print(
-        f"  texton path {np.asarray(new.path).tolist()}, lengths "
-        f"{np.asarray(new.lengths).tolist()} frames"
-    )
-    render_gif(
-        new.motion,
-        out / "new_dance.gif",
-        trajectories=["left_ankle", "right_ankle"],
-        title=f"synthesised from {tex.n_textons} textons (seed {args.seed})",
-    )
-    print(
-        f"wrote {out / 'texture.npz'}, {out / 'timeline.png'}, {out / 'new_dance.bvh'} and "
-        f"{out / 'new_dance.gif'}"
-    )
-    print(f"done in {time.perf_counter() - t0:.1f} s")
     return 0
 
 
@@ -305,26 +246,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("clip", help=SOURCE_HELP)
     s.add_argument("-o", "--output", default=None, help="timeline picture to write (.png)")
     s.set_defaults(func=_cmd_segment)
-
-    s = sub.add_parser(
-        "demo",
-        help="run the main job on the embedded default data",
-        description="Learn a motion texture from the embedded DeepMimic clips, then "
-        "synthesise a new dance from it: writes the model, a texton timeline, the new dance "
-        "as BVH and as an animated GIF.",
-    )
-    s.add_argument("--out", default="out", help="output folder (default: out)")
-    s.add_argument(
-        "--seconds", type=float, default=10.0, help="length of the new dance (default 10)"
-    )
-    s.add_argument("--seed", type=int, default=0, help="random seed of the synthesis (default 0)")
-    s.add_argument(
-        "--threshold",
-        type=float,
-        default=0.3,
-        help="greedy-initialisation threshold (default 0.3)",
-    )
-    s.set_defaults(func=_cmd_demo)
 
     s = sub.add_parser(
         "synth",

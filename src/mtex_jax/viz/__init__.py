@@ -1,5 +1,7 @@
-"""Pictures: stick-figure GIFs and filmstrips, texton timelines."""
+"""Pictures: stick-figure GIFs (one motion, or two side by side) and filmstrips, texton
+timelines."""
 
+from ._compare import render_gif_pair as render_gif_pair
 from ._plots import (
     plot_timeline as plot_timeline,
 )
@@ -11,4 +13,5 @@ __all__ = [
     "plot_timeline",
     "render_filmstrip",
     "render_gif",
+    "render_gif_pair",
 ]

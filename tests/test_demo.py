@@ -1,0 +1,58 @@
+"""``mtex demo`` on the shipped salsa clips, shortened: every output file is checked."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from PIL import Image
+
+import mtex_jax as mj
+from mtex_jax.cli import main
+
+
+def test_demo_pipeline_writes_every_file(tmp_path, capsys):
+    out = tmp_path / "out"
+    args = ["demo", "--out", str(out), "--train-clips", "2", "--held-clips", "1"]
+    assert main([*args, "--seconds", "3", "--max-iter", "2", "--seed", "1"]) == 0
+    text = capsys.readouterr().out
+    for line in ("EM iteration  0", "segments per texton", "quality of the new salsa", "done in"):
+        assert line in text, line
+    for step in ("learn (greedy init + EM)", "synthesise", "GIF beside a real clip"):
+        assert f"[{step}: " in text and step in text.split("time per step:")[1]
+
+    tex = mj.load_texture(out / "texture.npz")
+    salsa = mj.io.load_salsa("60_01")
+    assert tex.feature_map is not None and tex.feature_map.fps == 60.0
+    assert tex.feature_map.skeleton.same_structure(salsa.skeleton)
+    segs = np.asarray(tex.segments)
+    assert set(segs[:, 0].tolist()) == {0, 1}  # the two training clips
+
+    dance = mj.read_bvh(out / "new_dance.bvh")
+    assert dance.n_frames == 180 and dance.fps == 60.0
+    assert dance.skeleton.same_structure(salsa.skeleton)
+    assert np.isfinite(np.asarray(mj.forward_kinematics(dance))).all()
+
+    with Image.open(out / "new_dance.gif") as im:
+        assert im.format == "GIF" and im.n_frames == 45  # 2.98 s at 15 frames per second
+        assert im.size[0] == 2 * im.size[1]  # two square panels side by side
+    for png in ("timeline.png", "new_dance.png"):
+        with Image.open(out / png) as im:
+            assert im.format == "PNG" and im.size[0] > 100
+
+    report = json.loads((out / "quality.json").read_text())
+    assert report["training"] == ["60_01", "60_02"] and report["held_out"] == ["60_12"]
+    assert report["texture"]["textons"] == tex.n_textons
+    for row in ("synthesised", "real (held out)"):
+        for key in ("speed_ratio", "jerk_ratio", "skating_median", "penetration_max"):
+            assert isinstance(report["motion"][row][key], float), (row, key)
+    for key in ("boundary_share_above_p99", "novelty_median", "copy_fraction"):
+        assert key in report["motion"]["synthesised"]
+    assert set(report["step_seconds"]) >= {"learn (greedy init + EM)", "quality report"}
+
+
+def test_demo_refuses_bad_options(capsys):
+    for bad in (["--seconds", "0"], ["--seconds", "1e9"], ["--train-clips", "0"]):
+        assert main(["demo", *bad]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("mtex: error: --") and err.count("\n") == 1, err
