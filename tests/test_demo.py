@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from PIL import Image
 
 import mtex_jax as mj
@@ -56,3 +57,15 @@ def test_demo_refuses_bad_options(capsys):
         assert main(["demo", *bad]) == 2
         err = capsys.readouterr().err
         assert err.startswith("mtex: error: --") and err.count("\n") == 1, err
+
+
+def test_gif_pair_same_scale_loops_the_shorter_clip(tmp_path):
+    salsa = mj.io.load_salsa("60_10")[:90]  # 1.5 s at 60 Hz
+    walk = mj.io.load_example("walk")  # 1.27 s at 30 Hz, another skeleton: loops
+    gif = mj.viz.render_gif_pair(salsa, walk, tmp_path / "pair.gif", fps=10, dpi=40)
+    with Image.open(gif) as im:
+        assert im.n_frames == 15 and im.size == (320, 160)
+    with pytest.raises(ValueError, match="at most"):
+        mj.viz.render_gif_pair(salsa, walk, tmp_path / "x.gif", fps=40)
+    with pytest.raises(ValueError, match="unknown joint"):
+        mj.viz.render_gif_pair(salsa, walk, tmp_path / "x.gif", trajectories=["lFoot"])

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core import atomic_write
 from ..motion import Motion
 from ._panel import (
     _bones,
@@ -154,14 +155,15 @@ def render_gif_pair(
     entries[(entries >= 250).all(axis=1)] = 255  # keep the background pure white
     palette.putpalette(entries.astype(np.uint8).ravel().tolist())
     frames = [draw(i).quantize(palette=palette, dither=Image.Dither.NONE) for i in range(n_out)]
-    frames[0].save(
-        out,
-        format="GIF",
-        save_all=True,
-        append_images=frames[1:],
-        duration=_gif_durations(len(frames), rate),
-        loop=0,
-        disposal=1,
-        optimize=False,
-    )
+    with atomic_write(out, "wb") as fh:  # a failed render leaves an older file intact
+        frames[0].save(
+            fh,
+            format="GIF",
+            save_all=True,
+            append_images=frames[1:],
+            duration=_gif_durations(len(frames), rate),
+            loop=0,
+            disposal=1,
+            optimize=False,
+        )
     return out
