@@ -102,12 +102,10 @@ def _header_value(
     rest = ln[len(key) :].strip()
     try:
         v = float(rest)
-        if integer and v != int(v):
+        if not np.isfinite(v) or (integer and v != int(v)):
             raise ValueError
     except ValueError:
         raise ValueError(f"{source}:{i + 1}: invalid value {rest!r} for {key!r}") from None
-    if not np.isfinite(v):
-        raise ValueError(f"{source}:{i + 1}: invalid value {rest!r} for {key!r}")
     return v, i + 1
 
 

@@ -390,7 +390,7 @@ def load_feature_map(path: str | os.PathLike[str]) -> FeatureMap:
         raise ValueError(f"{path}: offset must be finite and scale finite and positive")
     try:
         return FeatureMap.from_arrays_json(arrays, meta)
-    except (ValueError, TypeError, KeyError, AttributeError, OverflowError) as e:
+    except (ValueError, TypeError, KeyError, AttributeError, OverflowError, IndexError) as e:
         raise ValueError(f"{path}: invalid feature map file: {e}") from None
 
 

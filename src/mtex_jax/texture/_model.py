@@ -216,7 +216,7 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
             config=cfg,
             threshold=float(meta["threshold"]),
         )
-    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as e:
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError, IndexError) as e:
         raise ValueError(f"{path}: invalid motion texture file: {e}") from None
 
 
