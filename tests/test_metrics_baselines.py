@@ -35,7 +35,7 @@ def _ar2_data(rng, T, D, n_seq=3):
 
 def test_ar2_fit_equals_least_squares_and_recovers_the_system():
     rng = np.random.default_rng(0)
-    seqs, (A1, A2, c, Sigma) = _ar2_data(rng, 4000, 3)
+    seqs, (A1, A2, _, Sigma) = _ar2_data(rng, 4000, 3)
     m = fit_ar2(seqs, ridge=0.0, floor=1e-12)
     # independent: numpy lstsq on the same frames
     Z = np.concatenate([np.c_[y[1:-1], y[:-2], np.ones(len(y) - 2)] for y in seqs])
