@@ -125,12 +125,6 @@ def load_arrays_json(
             members[name[:-4]] = info
         if _META_KEY not in members:
             raise ValueError(f"{p}: missing metadata ({_META_KEY}); not an mtex_jax model file")
-        if allowed is not None:
-            unknown = [
-                k for k in members if k != _META_KEY and not _matches(k, (*required, *allowed))
-            ]
-            if unknown:
-                raise ValueError(f"{p}: unknown arrays {sorted(unknown)[:5]} (not read)")
         total = 0
         arrays: dict[str, np.ndarray] = {}
         try:
@@ -152,13 +146,33 @@ def load_arrays_json(
                         f"array {k!r} declares shape {shape} of {dtype} ({nbytes:,} bytes); "
                         f"limits: {MAX_MEMBER_BYTES:,} bytes per array, {MAX_MODEL_BYTES:,} in all"
                     )
-            for k, info in members.items():
-                with zf.open(info) as fh:
-                    arrays[k] = np.lib.format.read_array(fh, allow_pickle=False)
+            with zf.open(members[_META_KEY]) as fh:
+                raw = np.lib.format.read_array(fh, allow_pickle=False)
         except _READ_ERRORS as e:
             raise ValueError(f"{p}: not a readable mtex_jax model file: {e}") from None
+        meta = _meta(p, raw, kind)
+        if allowed is not None:
+            known = (*required, *allowed)
+            unknown = [k for k in members if k != _META_KEY and not _matches(k, known)]
+            if unknown:
+                raise ValueError(f"{p}: unknown arrays {sorted(unknown)[:5]} (not read)")
+        try:
+            for k, info in members.items():
+                if k != _META_KEY:
+                    with zf.open(info) as fh:
+                        arrays[k] = np.lib.format.read_array(fh, allow_pickle=False)
+        except _READ_ERRORS as e:
+            raise ValueError(f"{p}: not a readable mtex_jax model file: {e}") from None
+    missing = [k for k in required if k not in arrays]
+    if missing:
+        raise ValueError(f"{p}: missing arrays {missing}")
+    return arrays, meta
+
+
+def _meta(p: Path, raw: np.ndarray, kind: str) -> dict[str, Any]:
+    """The metadata of a model file; ``ValueError`` unless it is a JSON object of ``kind``."""
     try:
-        text = arrays.pop(_META_KEY).tobytes().decode("utf-8")
+        text = raw.tobytes().decode("utf-8")
         check_json_depth(text, "metadata")
         meta = json.loads(text)
     except (UnicodeDecodeError, ValueError) as e:
@@ -166,7 +180,4 @@ def load_arrays_json(
     if not isinstance(meta, dict) or meta.get("kind") != kind:
         got = meta.get("kind") if isinstance(meta, dict) else None
         raise ValueError(f"{p}: expected a {kind!r} file, found kind {got!r}")
-    missing = [k for k in required if k not in arrays]
-    if missing:
-        raise ValueError(f"{p}: missing arrays {missing}")
-    return arrays, meta
+    return meta
