@@ -8,6 +8,7 @@ import os
 import time
 from typing import Any
 
+from ..core import atomic_write
 from ._validators import SOURCE_HELP, positive, positive_int, read_source
 
 __all__ = ["register"]
@@ -38,16 +39,9 @@ def _fmt(x: Any) -> str:
 
 
 def _write_json(path: str, report: dict[str, Any]) -> None:
-    tmp = f"{path}.tmp"
-    try:
-        with open(tmp, "w") as f:
-            json.dump(report, f, indent=1, default=float)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    text = json.dumps(report, indent=1, default=float)  # fails before the file is touched
+    with atomic_write(path, "w", encoding="utf-8") as f:
+        f.write(text)
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..core import atomic_write
 from ..metrics import speed_samples
 from ..motion import Motion
 
@@ -57,11 +58,8 @@ def plot_speed_distributions(
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    tmp = os.fspath(path) + ".tmp.png"
     try:
-        fig.savefig(tmp, dpi=90)
-        os.replace(tmp, path)
+        with atomic_write(path, "wb") as fh:
+            fig.savefig(fh, format="png", dpi=90)
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.remove(tmp)
