@@ -428,6 +428,13 @@ def test_every_subcommand_bad_arguments_one_line_exit_2(small_texture, tmp_path,
             ["example:dance_a", "-o", o, "--beta", "-1"],
             ["missing.bvh", "-o", o],
         ],
+        "evaluate": [
+            [str(model)],
+            [str(text), "--test", "example:dance_a"],
+            [str(model), "--test", "missing.bvh"],
+            [str(model), "--test", "example:dance_a", "--synth", "0"],
+            [str(model), "--test", "example:dance_a", "--seconds", "-2"],
+        ],
         "track": [
             ["example:dance_a"],
             ["example:dance_a", "--test", "missing.bvh"],
@@ -438,7 +445,8 @@ def test_every_subcommand_bad_arguments_one_line_exit_2(small_texture, tmp_path,
     out = subprocess.run(
         [sys.executable, "-m", "mtex_jax", "--help"], capture_output=True, text=True, check=True
     ).stdout
-    listed = {w for line in out.splitlines() for w in line.split()[:1] if w in bad}
+    # the sub-commands: the lines indented by four spaces under COMMAND in 'mtex --help'
+    listed = {m.group(1) for m in re.finditer(r"(?m)^    ([a-z][a-z-]*)\b", out)}
     assert listed == set(bad), f"sub-commands without bad-argument cases: {listed ^ set(bad)}"
     n = 0
     for command, cases in bad.items():
