@@ -132,3 +132,12 @@ def test_path_errors():
         mj.texture.shortest_path(disconnected, 0, 1)
     with pytest.raises(ValueError, match="no path of exactly"):
         mj.texture.path_of_length(disconnected, 0, 1, 4)
+
+
+def test_self_repeats_are_bounded_for_a_texton_that_always_follows_itself():
+    """One texton with M = [[1]] (a texture learned on little data): the repeats stop at the
+    documented bound instead of allocating terabytes."""
+    from mtex_jax.texture import MAX_SELF_REPEATS, shortest_path
+
+    path = shortest_path(np.ones((1, 1)), 0, 0, key=jax.random.key(0))
+    assert path.tolist() == [0] * (1 + MAX_SELF_REPEATS)

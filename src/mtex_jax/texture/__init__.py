@@ -55,6 +55,7 @@ from ._model import (
     texture_summary as texture_summary,
 )
 from ._paths import (
+    MAX_SELF_REPEATS as MAX_SELF_REPEATS,
     path_cost as path_cost,
     path_of_length as path_of_length,
     random_path as random_path,
@@ -96,6 +97,7 @@ from ._texton import (
 )
 
 __all__ = [
+    "MAX_SELF_REPEATS",
     "BandedSolution",
     "BlockTridiagCholesky",
     "DynamicsStats",

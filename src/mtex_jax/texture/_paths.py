@@ -162,14 +162,21 @@ def _dijkstra(W: np.ndarray, u: int) -> tuple[np.ndarray, np.ndarray]:
     return dist, pred
 
 
+MAX_SELF_REPEATS = (
+    1000  # a texton that (almost) always follows itself is repeated at most this often
+)
+
+
 def _repeat_self(M: np.ndarray, path: np.ndarray, key: Array) -> np.ndarray:
-    """Repeat each texton ``r ~ Geometric`` extra times: ``P(r) = M_ii^r (1 − M_ii)``."""
+    """Repeat each texton ``r ~ Geometric`` extra times: ``P(r) = M_ii^r (1 − M_ii)``,
+    truncated at :data:`MAX_SELF_REPEATS` (``M_ii = 1`` would repeat forever)."""
     stay = np.clip(M[path, path], 0.0, 1.0 - 1e-12)
     # inverse-CDF sample of the number of failures before the first success (p = 1 − M_ii)
     u = np.asarray(jax.random.uniform(key, (path.size,), dtype=jnp.float32), dtype=np.float64)
     u = np.clip(u, 1e-12, 1.0)
     with np.errstate(divide="ignore"):
         reps = np.where(stay > 0, np.floor(np.log(u) / np.log(np.maximum(stay, 1e-300))), 0)
+    reps = np.minimum(reps, MAX_SELF_REPEATS)
     return np.repeat(path, 1 + reps.astype(np.int64))
 
 
