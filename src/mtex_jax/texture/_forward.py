@@ -31,7 +31,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._scores import SegmentScorer, segment_scores
-from ._segment import _check_lengths, _end_start_parts
+from ._segment import _check_dp_inputs, _end_start_parts
 from ._texton import Texton
 
 __all__ = ["forward_log_likelihood", "log_likelihood"]
@@ -185,16 +185,10 @@ def log_likelihood(
     if Y.ndim != 2:
         raise ValueError(f"Y must have shape (T, D), got {Y.shape}")
     T = Y.shape[0]
-    tmin, tmax = _check_lengths(tmin, tmax, T)
+    tmin, tmax, log_M, log_pi = _check_dp_inputs(textons, log_M, log_pi, T, tmin, tmax)
     if T < tmin:
         raise ValueError(f"sequence has {T} frames, shorter than tmin = {tmin}")
-    n_t = textons.n_textons if textons.is_stacked else 1
-    log_M = jnp.asarray(log_M)
-    log_pi = jnp.asarray(log_pi)
-    if log_M.shape != (n_t, n_t):
-        raise ValueError(f"log_M must have shape ({n_t}, {n_t}), got {log_M.shape}")
-    if log_pi.shape != (n_t,):
-        raise ValueError(f"log_pi must have shape ({n_t},), got {log_pi.shape}")
+    n_t = log_pi.shape[0]
     dur = None
     if log_durations is not None:
         dur = jnp.asarray(log_durations)

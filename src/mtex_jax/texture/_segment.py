@@ -128,6 +128,22 @@ def _end_start_parts(scorer: SegmentScorer, Tp: int) -> tuple[Array, Array]:
     return jnp.concatenate([a_all, pad], axis=0), jnp.concatenate([b0_all, pad], axis=0)
 
 
+def _check_dp_inputs(
+    textons: Texton, log_M: ArrayLike, log_pi: ArrayLike, T: int, tmin: int, tmax: int | None
+) -> tuple[int, int, Array, Array]:
+    """The checks shared by the Viterbi and forward entry points: lengths, and the shapes of
+    ``log_M (N_t, N_t)`` and ``log_pi (N_t,)``."""
+    tmin, tmax = _check_lengths(tmin, tmax, T)
+    n_t = textons.n_textons if textons.is_stacked else 1
+    log_M = jnp.asarray(log_M)
+    log_pi = jnp.asarray(log_pi)
+    if log_M.shape != (n_t, n_t):
+        raise ValueError(f"log_M must have shape ({n_t}, {n_t}), got {log_M.shape}")
+    if log_pi.shape != (n_t,):
+        raise ValueError(f"log_pi must have shape ({n_t},), got {log_pi.shape}")
+    return tmin, tmax, log_M, log_pi
+
+
 @eqx.filter_jit
 def viterbi_segments(
     scorer: SegmentScorer,
@@ -242,14 +258,7 @@ def segment(
         raise ValueError(f"Y must have shape (T, D) or (S, T, D), got {Y.shape}")
     batched = Y.ndim == 3
     T = Y.shape[-2]
-    tmin, tmax = _check_lengths(tmin, tmax, T)
-    n_t = textons.n_textons if textons.is_stacked else 1
-    log_M = jnp.asarray(log_M)
-    log_pi = jnp.asarray(log_pi)
-    if log_M.shape != (n_t, n_t):
-        raise ValueError(f"log_M must have shape ({n_t}, {n_t}), got {log_M.shape}")
-    if log_pi.shape != (n_t,):
-        raise ValueError(f"log_pi must have shape ({n_t},), got {log_pi.shape}")
+    tmin, tmax, log_M, log_pi = _check_dp_inputs(textons, log_M, log_pi, T, tmin, tmax)
     if not batched:
         if T < tmin:
             raise ValueError(f"sequence has {T} frames, shorter than tmin = {tmin}")

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core import atomic_write
 from ..motion import Motion
 from ._panel import (
     _bones,
@@ -26,9 +25,9 @@ from ._render import (
     _MAX_GIF_FPS,
     _check_motion,
     _check_path,
-    _gif_durations,
     _positive,
     _require_plotting,
+    _save_gif,
 )
 
 __all__ = ["render_gif_pair"]
@@ -150,20 +149,5 @@ def render_gif_pair(
         rgba = np.asarray(canvas.buffer_rgba())
         return Image.fromarray(np.ascontiguousarray(rgba[..., :3]))
 
-    palette = draw(n_out - 1).quantize(colors=255, method=Image.Quantize.FASTOCTREE)
-    entries = np.asarray(palette.getpalette() or [], dtype=np.int64).reshape(-1, 3)
-    entries[(entries >= 250).all(axis=1)] = 255  # keep the background pure white
-    palette.putpalette(entries.astype(np.uint8).ravel().tolist())
-    frames = [draw(i).quantize(palette=palette, dither=Image.Dither.NONE) for i in range(n_out)]
-    with atomic_write(out, "wb") as fh:  # a failed render leaves an older file intact
-        frames[0].save(
-            fh,
-            format="GIF",
-            save_all=True,
-            append_images=frames[1:],
-            duration=_gif_durations(len(frames), rate),
-            loop=0,
-            disposal=1,
-            optimize=False,
-        )
+    _save_gif(out, list(range(n_out)), draw, rate)
     return out

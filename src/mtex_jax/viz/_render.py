@@ -110,6 +110,30 @@ def _gif_durations(n: int, fps: float) -> list[int]:
     return [int(10 * max(c, 1)) for c in cs]
 
 
+def _save_gif(out: Any, frames: Sequence[int], draw: Any, rate: float) -> None:
+    """Draw ``frames`` with ``draw(i) -> PIL image`` and write them as a looping GIF at
+    ``rate`` frames per second, atomically, with one palette taken from the last frame (no
+    flicker; the background kept pure white)."""
+    from PIL import Image
+
+    palette = draw(frames[-1]).quantize(colors=255, method=Image.Quantize.FASTOCTREE)
+    entries = np.asarray(palette.getpalette() or [], dtype=np.int64).reshape(-1, 3)
+    entries[(entries >= 250).all(axis=1)] = 255  # keep the background pure white
+    palette.putpalette(entries.astype(np.uint8).ravel().tolist())
+    images = [draw(i).quantize(palette=palette, dither=Image.Dither.NONE) for i in frames]
+    with atomic_write(out, "wb") as fh:  # a failed render leaves an older file intact
+        images[0].save(
+            fh,
+            format="GIF",
+            save_all=True,
+            append_images=images[1:],
+            duration=_gif_durations(len(images), rate),
+            loop=0,
+            disposal=1,
+            optimize=False,
+        )
+
+
 def render_gif(
     motion: Motion,
     path: str | os.PathLike[str],
@@ -252,23 +276,7 @@ def render_gif(
 
     # One palette for every frame (no flicker): taken from the last frame, which shows the
     # complete trajectories and so every colour used.
-    palette = draw(int(shown[-1])).quantize(colors=255, method=Image.Quantize.FASTOCTREE)
-    entries = np.asarray(palette.getpalette() or [], dtype=np.int64).reshape(-1, 3)
-    near_white = (entries >= 250).all(axis=1)
-    entries[near_white] = 255  # keep the background pure white
-    palette.putpalette(entries.astype(np.uint8).ravel().tolist())
-    frames = [draw(int(i)).quantize(palette=palette, dither=Image.Dither.NONE) for i in shown]
-    with atomic_write(out, "wb") as fh:  # a failed render leaves an older file intact
-        frames[0].save(
-            fh,
-            format="GIF",
-            save_all=True,
-            append_images=frames[1:],
-            duration=_gif_durations(len(frames), rate),
-            loop=0,
-            disposal=1,
-            optimize=False,
-        )
+    _save_gif(out, [int(i) for i in shown], draw, rate)
     return out
 
 
