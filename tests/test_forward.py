@@ -13,25 +13,14 @@ import pytest
 from jax.test_util import check_grads
 from scipy.special import logsumexp
 
+from dp_problems import compositions, small_textons
 from mtex_jax.texture import (
-    fit_texton,
     forward_log_likelihood,
     log_likelihood,
     segment,
     segment_log_likelihood,
     segment_scores,
-    stack_textons,
 )
-
-
-def _textons(rng, n_t, D=4, k=2):
-    out = []
-    for i in range(n_t):
-        t = np.arange(60)
-        y = np.stack([np.sin(0.2 * (i + 1) * t + j) for j in range(D)], axis=1)
-        y = y + 0.3 * rng.normal(size=y.shape) + i
-        out.append(fit_texton(jnp.asarray(y), state_dim=k))
-    return stack_textons(out)
 
 
 def _data(rng, T, n_t, D=4):
@@ -40,15 +29,6 @@ def _data(rng, T, n_t, D=4):
         for j in range(T // 4 + 1)
     ]
     return np.concatenate(pieces)[:T] + 0.2 * rng.normal(size=(T, D))
-
-
-def _compositions(T, tmin, tmax):
-    if T == 0:
-        yield ()
-        return
-    for L in range(tmin, min(tmax, T) + 1):
-        for rest in _compositions(T - L, tmin, tmax):
-            yield (L, *rest)
 
 
 def brute_force(textons, log_M, log_pi, Y, tmin, tmax, log_dur=None):
@@ -65,7 +45,7 @@ def brute_force(textons, log_M, log_pi, Y, tmin, tmax, log_dur=None):
         return cache[(b, L, i)]
 
     terms, best = [], -np.inf
-    for comp in _compositions(T, tmin, tmax):
+    for comp in compositions(T, tmin, tmax):
         starts = np.concatenate([[0], np.cumsum(comp)[:-1]]).astype(int)
         for labels in itertools.product(range(n_t), repeat=len(comp)):
             s = log_pi[labels[0]] + sum(log_M[a, b] for a, b in itertools.pairwise(labels))
@@ -77,7 +57,7 @@ def brute_force(textons, log_M, log_pi, Y, tmin, tmax, log_dur=None):
 
 def _problem(T, n_t, seed):
     rng = np.random.default_rng(seed)
-    tex = _textons(rng, n_t)
+    tex = small_textons(rng, n_t)
     log_M = np.log(rng.dirichlet(np.ones(n_t), size=n_t))
     log_pi = np.log(rng.dirichlet(np.ones(n_t)))
     return tex, log_M, log_pi, _data(rng, T, n_t)

@@ -9,26 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mtex_jax.texture import fit_texton, segment, segment_log_likelihood, stack_textons
-
-
-def _textons(rng, n_t, D=4, k=2):
-    out = []
-    for i in range(n_t):
-        t = np.arange(60)
-        y = np.stack([np.sin(0.2 * (i + 1) * t + j) for j in range(D)], axis=1)
-        y = y + 0.3 * rng.normal(size=y.shape) + i
-        out.append(fit_texton(jnp.asarray(y), state_dim=k))
-    return stack_textons(out)
-
-
-def _compositions(T, tmin, tmax):
-    if T == 0:
-        yield ()
-        return
-    for L in range(tmin, min(tmax, T) + 1):
-        for rest in _compositions(T - L, tmin, tmax):
-            yield (L, *rest)
+from dp_problems import compositions, small_textons
+from mtex_jax.texture import segment, segment_log_likelihood
 
 
 def brute_force(textons, log_M, log_pi, Y, tmin, tmax):
@@ -43,7 +25,7 @@ def brute_force(textons, log_M, log_pi, Y, tmin, tmax):
         return cache[key]
 
     best, arg = -np.inf, None
-    for comp in _compositions(T, tmin, tmax):
+    for comp in compositions(T, tmin, tmax):
         starts = np.concatenate([[0], np.cumsum(comp)[:-1]])
         for labels in itertools.product(range(n_t), repeat=len(comp)):
             s = log_pi[labels[0]] + sum(log_M[a, b] for a, b in itertools.pairwise(labels))
@@ -62,7 +44,7 @@ def brute_force(textons, log_M, log_pi, Y, tmin, tmax):
 )
 def test_dp_equals_brute_force(T, n_t, tmin, tmax):
     rng = np.random.default_rng(T * 10 + n_t)
-    tex = _textons(rng, n_t)
+    tex = small_textons(rng, n_t)
     M = rng.dirichlet(np.ones(n_t), size=n_t)
     pi = rng.dirichlet(np.ones(n_t))
     log_M, log_pi = np.log(M), np.log(pi)
@@ -83,7 +65,7 @@ def test_dp_equals_brute_force(T, n_t, tmin, tmax):
 
 def test_bounded_dp_with_large_tmax_equals_unbounded():
     rng = np.random.default_rng(3)
-    tex = _textons(rng, 3)
+    tex = small_textons(rng, 3)
     M = rng.dirichlet(np.ones(3), size=3)
     pi = rng.dirichlet(np.ones(3))
     Y = jnp.asarray(rng.normal(size=(40, 4)))
@@ -96,7 +78,7 @@ def test_bounded_dp_with_large_tmax_equals_unbounded():
 
 def test_batched_padded_sequences_equal_single_runs():
     rng = np.random.default_rng(4)
-    tex = _textons(rng, 2)
+    tex = small_textons(rng, 2)
     M = rng.dirichlet(np.ones(2), size=2)
     pi = rng.dirichlet(np.ones(2))
     lens = [30, 22, 17]
@@ -115,7 +97,7 @@ def test_batched_padded_sequences_equal_single_runs():
 
 def test_segment_input_checks_and_no_retrace():
     rng = np.random.default_rng(5)
-    tex = _textons(rng, 2)
+    tex = small_textons(rng, 2)
     lm, lp = np.log(np.full((2, 2), 0.5)), np.log(np.full(2, 0.5))
     Y = jnp.asarray(rng.normal(size=(20, 4)))
     with pytest.raises(ValueError, match="tmin"):
