@@ -21,7 +21,7 @@ AOT-compiled call under ``jit`` (also one execution) are timed as separate rows.
 Every numpy variant is timed with one OpenBLAS thread and with all of them (separate rows:
 the faster setting differs between variants and with the load of the shared machine), and the
 5× target is judged against the fastest numpy row. The previous JAX algorithm (per-texton
-``lax.map``, ``frame_terms(..., chunk_size=1)``) is timed as an extra, labelled row. All
+``lax.map``, ``mtex_jax.internal.frame_terms_per_texton``) is timed as an extra, labelled row. All
 results are checked equal (rtol 1e-9). Runs are interleaved (JAX, numpy, numpy, JAX, …), with
 a pause of 0.1 s before each, so that background load on the shared machine affects all of
 them alike; medians are reported, with process CPU time (all threads) next to wall
@@ -56,14 +56,12 @@ import numpy as np
 from _machine import cpu_and_memory
 
 try:
-    from mtex_jax.texture._frame_terms import frame_terms
-    from mtex_jax.texture._texton import Texton
-    from mtex_jax.texture._workers import _available_cores
+    import mtex_jax  # noqa: F401
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-    from mtex_jax.texture._frame_terms import frame_terms
-    from mtex_jax.texture._texton import Texton
-    from mtex_jax.texture._workers import _available_cores
+from mtex_jax import internal
+from mtex_jax.internal import available_cores as _available_cores
+from mtex_jax.texture import Texton, frame_terms
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -304,7 +302,7 @@ def main() -> None:
     others: dict[str, Any] = {
         "jax": (dyn_j, obs_j),
         "jax_one": frame_terms(textons, Yj, workers=1),
-        "jax_per_texton": frame_terms(textons, Yj, chunk_size=1),
+        "jax_per_texton": internal.frame_terms_per_texton(textons, Yj, chunk_size=1),
         "numpy_per_texton": numpy_per_texton(p, Y),
     }
     if not args.skip_slow:
@@ -354,7 +352,7 @@ def main() -> None:
         "jax": lambda: frame_terms(textons, Yj),
         "jax_one": lambda: frame_terms(textons, Yj, workers=1),
         "jax_aot": lambda: compiled(textons, Yj),
-        "jax_per_texton": lambda: frame_terms(textons, Yj, chunk_size=1),
+        "jax_per_texton": lambda: internal.frame_terms_per_texton(textons, Yj, chunk_size=1),
         "jax_alloc": lambda: zeros_like_outputs(Yj[0, 0]),
     }
     for name, fn in numpy_fns.items():

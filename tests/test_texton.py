@@ -500,7 +500,11 @@ def test_frame_and_init_terms_match_scipy():
     np.testing.assert_allclose(d1, dyn[1], rtol=1e-13)
     np.testing.assert_allclose(o1, obs[1], rtol=1e-13)
     # the per-texton algorithm (chunk_size) and other time blocks give the same result
-    for kw in (dict(chunk_size=2), dict(chunk_size=1), dict(block_size=1), dict(block_size=5)):
+    for chunk in (2, 1):
+        dc, oc = internal.frame_terms_per_texton(st, Y, chunk_size=chunk)
+        np.testing.assert_allclose(dc, dyn, rtol=1e-12, err_msg=f"chunk {chunk}")
+        np.testing.assert_allclose(oc, obs, rtol=1e-12, err_msg=f"chunk {chunk}")
+    for kw in (dict(block_size=1), dict(block_size=5)):
         d3, o3 = frame_terms(st, Y, **kw)
         np.testing.assert_allclose(d3, dyn, rtol=1e-12, err_msg=str(kw))
         np.testing.assert_allclose(o3, obs, rtol=1e-12, err_msg=str(kw))
@@ -573,9 +577,9 @@ def test_frame_terms_block_and_chunk_arguments_are_validated():
         with pytest.raises(ValueError, match="block_size"):
             frame_terms(st, Y, block_size=bad)  # type: ignore[arg-type]
         with pytest.raises(ValueError, match="chunk_size"):
-            frame_terms(st, Y, chunk_size=bad)  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="at most one"):
-        frame_terms(st, Y, block_size=4, chunk_size=1)
+            internal.frame_terms_per_texton(st, Y, chunk_size=bad)  # type: ignore[arg-type]
+    with pytest.raises(TypeError):
+        frame_terms(st, Y, chunk_size=1)  # type: ignore[call-arg]  # no longer a public knob
 
 
 @pytest.mark.parametrize("workers", [2, 3, 7, 12])
@@ -710,13 +714,13 @@ def test_frame_terms_do_not_retrace_for_new_data():
     rng = np.random.default_rng(12)
     st = stack_textons([to_texton(random_texton_np(rng, 6, 2)) for _ in range(3)])
     frame_terms(st, rng.standard_normal((40, 6)))
-    frame_terms(st, rng.standard_normal((40, 6)), chunk_size=1)
+    internal.frame_terms_per_texton(st, rng.standard_normal((40, 6)), chunk_size=1)
     n0 = eqx.debug.get_num_traces(internal.frame_terms_traced)
     n0_chunk = eqx.debug.get_num_traces(internal.all_terms_traced)
     for _ in range(3):
         st2 = jax.tree.map(lambda a: a * 1.01, st)
         frame_terms(st2, rng.standard_normal((40, 6)))
-        frame_terms(st2, rng.standard_normal((40, 6)), chunk_size=1)
+        internal.frame_terms_per_texton(st2, rng.standard_normal((40, 6)), chunk_size=1)
     assert eqx.debug.get_num_traces(internal.frame_terms_traced) == n0
     assert eqx.debug.get_num_traces(internal.all_terms_traced) == n0_chunk
     fit_texton(rng.standard_normal((40, 6)), state_dim=2)

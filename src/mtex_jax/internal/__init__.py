@@ -35,6 +35,7 @@ from ..texture._frame_terms import (
     _all_terms_traced as all_terms_traced,
     _frame_terms_jit as frame_terms_jit,
     _frame_terms_traced as frame_terms_traced,
+    frame_terms_per_texton as frame_terms_per_texton,
 )
 
 # key poses of a texton path: training-segment chains and outlier key-pose pairs
@@ -90,6 +91,7 @@ __all__ = [
     "fit_texton_traced",
     "frame_terms_jit",
     "frame_terms_parts",
+    "frame_terms_per_texton",
     "frame_terms_traced",
     "key_pair_jumps",
     "key_pose_instances",

@@ -308,7 +308,6 @@ def frame_terms(
     Y: ArrayLike,
     *,
     block_size: int | None = None,
-    chunk_size: int | None = None,
     workers: int | None = None,
 ) -> tuple[Float[Array, "*n T"], Float[Array, "*n T"]]:
     """Per-frame log-density terms of every texton on every frame (SPEC §3).
@@ -344,12 +343,8 @@ def frame_terms(
         block_size: frames per time block (static); ``None`` chooses it so that one block's
             projections take about 2 MB (62 frames for 246 textons with k = 15 in float64).
             Memory ``O(N_t · k · block_size)`` besides the outputs.
-        chunk_size: if given, use instead the per-texton algorithm (``lax.map`` over textons,
-            ``chunk_size`` textons per step; each texton projects all frames with one GEMM and
-            forms ``B⁻¹(x_t − A1 x_{t−1} − A2 x_{t−2} − d)`` with three ``k × k`` GEMMs).
-            Slower; kept as an independent implementation. Not combinable with ``block_size``.
-        workers: concurrent executions of an eager call of the blocked kernel on the CPU
-            (not used with ``chunk_size``): the textons are split into that many blocks, each
+        workers: concurrent executions of an eager call of the blocked kernel on the CPU: the
+            textons are split into that many blocks, each
             computed by one execution started from its own host thread, and the rows are
             assembled in place (XLA:CPU runs the small GEMMs and elementwise passes of one
             execution on one core). ``None``: the number of cores available to the process
@@ -365,20 +360,13 @@ def frame_terms(
     Raises:
         ValueError: if ``Y`` is not ``(T, D)`` with the textons' ``D``, or contains NaN/inf
             (checked eagerly when ``Y`` is concrete, by ``eqx.error_if`` under a trace), or if
-            ``block_size``/``chunk_size``/``workers`` is not a positive int (or both
-            ``block_size`` and ``chunk_size`` are given).
+            ``block_size``/``workers`` is not a positive int. (The per-texton algorithm, an
+            independent implementation of the same terms, is
+            ``mtex_jax.internal.frame_terms_per_texton``, for tests.)
     """
     textons = _check_texton("textons", textons)
     Y = _check_obs("Y", Y, textons.obs_dim)
     workers = _check_workers(workers)
-    if chunk_size is not None:
-        if block_size is not None:
-            raise ValueError("give at most one of block_size and chunk_size")
-        dyn, obs, _ = _all_terms_jit(
-            textons, Y, True, False, _check_positive_int("chunk_size", chunk_size)
-        )
-        assert dyn is not None and obs is not None
-        return dyn, obs
     single = not textons.is_stacked
     if single:
         textons = jax.tree.map(lambda a: a[None], textons)
@@ -394,6 +382,23 @@ def frame_terms(
         dyn, obs = _frame_terms_jit(textons, Y, block, check=isinstance(Y, Tracer))
     if single:
         return dyn[0], obs[0]
+    return dyn, obs
+
+
+def frame_terms_per_texton(
+    textons: Texton, Y: ArrayLike, *, chunk_size: int = 1
+) -> tuple[Float[Array, "*n T"], Float[Array, "*n T"]]:
+    """:func:`frame_terms` by the per-texton algorithm: ``lax.map`` over textons,
+    ``chunk_size`` per step; each texton projects all frames with one GEMM and forms
+    ``B⁻¹(x_t − A1 x_{t−1} − A2 x_{t−2} − d)`` with three ``k × k`` GEMMs. Slower than the
+    blocked kernel; an independent implementation of the same formulas (a test reference,
+    exported through ``mtex_jax.internal``)."""
+    textons = _check_texton("textons", textons)
+    Y = _check_obs("Y", Y, textons.obs_dim)
+    dyn, obs, _ = _all_terms_jit(
+        textons, Y, True, False, _check_positive_int("chunk_size", chunk_size)
+    )
+    assert dyn is not None and obs is not None
     return dyn, obs
 
 

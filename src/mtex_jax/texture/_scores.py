@@ -134,7 +134,7 @@ def segment_scores(
 
 
 def _segment_scores_impl(textons: Texton, Y: Array, block: int | None = None) -> SegmentScorer:
-    # all three terms by the blocked kernel of frame_terms; init_terms(chunk_size=…), the
+    # all three terms by the blocked kernel of frame_terms; init_terms (per texton), the
     # per-texton algorithm, is the independent reference
     if block is None:
         block = _block_frames(None, textons, Y)
