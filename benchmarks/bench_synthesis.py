@@ -56,10 +56,12 @@ try:
     import mtex_jax  # noqa: F401
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-from mtex_jax.texture._bridge import _bridge_usable
-from mtex_jax.texture._normal import _equations, _normal_system, _observe, _solve_constrained
-from mtex_jax.texture._synthesis import _draw_noise, synthesize_texton
-from mtex_jax.texture._texton import Texton
+from mtex_jax.internal import bridge_usable, constrained_equations, solve_constrained
+from mtex_jax.texture import Texton, synthesize_texton
+
+# no public or mtex_jax.internal name for these three yet (the dense reference and the noise)
+from mtex_jax.texture._normal import _normal_system, _observe
+from mtex_jax.texture._synthesis import _draw_noise
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -107,8 +109,8 @@ def dense_synthesis(tex: Texton, key: jax.Array, length: int, start, end) -> jax
 def banded_synthesis(tex: Texton, key: jax.Array, length: int, start, end) -> jax.Array:
     """The same sample from the masked normal equations and the block-banded solver."""
     w = _draw_noise(tex, key, length) @ tex.B.T
-    eqs = _equations(tex, length, w, start, end, None, "whitened")
-    return _observe(tex, *_solve_constrained(tex, eqs, w))
+    eqs = constrained_equations(tex, length, w, start, end, None, "whitened")
+    return _observe(tex, *solve_constrained(tex, eqs, w))
 
 
 def timed(fn, *args: Any) -> float:
@@ -140,7 +142,7 @@ def main() -> None:
     load_before = os.getloadavg()
     rng = np.random.default_rng(0)
     tex = random_texton(rng, D, k)
-    assert bool(_bridge_usable(tex.A1, tex.A2, L - 4))  # the bridge rows time the bridge
+    assert bool(bridge_usable(tex.A1, tex.A2, L - 4))  # the bridge rows time the bridge
     Y = np.asarray(tex.mu) + rng.standard_normal((4, k)) @ np.asarray(tex.C).T
     start, end = jnp.asarray(Y[:2]), jnp.asarray(Y[2:])
     key = jax.random.key(0)
