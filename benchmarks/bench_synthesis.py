@@ -56,12 +56,16 @@ try:
     import mtex_jax  # noqa: F401
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-from mtex_jax.internal import bridge_usable, constrained_equations, solve_constrained
-from mtex_jax.texture import Texton, synthesize_texton
-
 # no public or mtex_jax.internal name for these three yet (the dense reference and the noise)
-from mtex_jax.texture._normal import _normal_system, _observe
-from mtex_jax.texture._synthesis import _draw_noise
+from mtex_jax.internal import (
+    bridge_usable,
+    constrained_equations,
+    constrained_normal_system as _normal_system,
+    draw_noise as _draw_noise,
+    observe_states as _observe,
+    solve_constrained,
+)
+from mtex_jax.texture import Texton, synthesize_texton
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

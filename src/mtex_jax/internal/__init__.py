@@ -59,6 +59,8 @@ from ..texture._linalg import (
 # constrained texton synthesis: the masked normal equations and their banded solve
 from ..texture._normal import (
     _equations as constrained_equations,
+    _normal_system as constrained_normal_system,
+    _observe as observe_states,
     _solve_constrained as solve_constrained,
 )
 
@@ -66,7 +68,11 @@ from ..texture._normal import (
 from ..texture._sequence import _path_core as path_core
 
 # texton synthesis noise: Box-Muller standard normals and the polynomial cos/sin of 2πu
-from ..texture._synthesis import _sincos_turn as sincos_turn, _standard_normal as standard_normal
+from ..texture._synthesis import (
+    _draw_noise as draw_noise,
+    _sincos_turn as sincos_turn,
+    _standard_normal as standard_normal,
+)
 
 # the array fields of a Texton, in file order
 from ..texture._texton import _TEXTON_FIELDS as TEXTON_FIELDS
@@ -87,6 +93,8 @@ __all__ = [
     "block_tridiag_factor",
     "bridge_usable",
     "constrained_equations",
+    "constrained_normal_system",
+    "draw_noise",
     "encode_motion",
     "fit_texton_traced",
     "frame_terms_jit",
@@ -96,6 +104,7 @@ __all__ = [
     "key_pair_jumps",
     "key_pose_instances",
     "next_segments",
+    "observe_states",
     "path_core",
     "sample_exact_traced",
     "sample_tree_traced",
