@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ..texture import MotionTexture, Texton
+from ..texture import MotionTexture, Segmentation, Texton
 
 __all__ = ["texture_predict"]
 
@@ -54,7 +54,14 @@ def texture_predict(
         ``(predictions (T − 2, D), labels (T,))``: the labels are the best segmentation's.
     """
     y = texture.observations(Y)
-    labels = texture.segment(y).frame_labels(y.shape[0])
+    return _predict_segmented(texture, y, texture.segment(y))
+
+
+def _predict_segmented(
+    texture: MotionTexture, y: Array, seg: Segmentation
+) -> tuple[Float[Array, "T2 D"], np.ndarray]:
+    """:func:`texture_predict` with the best segmentation of ``y`` already computed."""
+    labels = seg.frame_labels(y.shape[0])
     if np.any(labels < 0):
         raise ValueError("the texture found no segmentation of Y (is it shorter than tmin?)")
     pred = _predict_labelled(texture.textons, jnp.asarray(labels[1:-1]), y)

@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..motion import Motion
@@ -24,7 +25,7 @@ from ._baselines import constant_velocity, fit_ar2, hold_last, prediction_error
 from ._contacts import ContactModel, fit_contacts
 from ._kinematics import as_motion_list
 from ._novelty import copying, copying_from_indices, novelty
-from ._prediction import texture_predict
+from ._prediction import _predict_segmented
 from ._realism import RealismResult, realism
 from ._transitions import boundary_jumps, jump_p99
 
@@ -161,8 +162,12 @@ def density_report(
     n = sum(len(y) for y in held_y)
     rows: dict[str, dict[str, float]] = {}
     marg = sum(texture.log_likelihood(y) for y in held_y)
-    best = sum(texture.best_path_log_likelihood(y) for y in held_y)
-    preds = [texture_predict(texture, y)[0] for y in held_y]
+    segs = [texture.segment(y) for y in held_y]  # one Viterbi per clip: score and labels
+    best = sum(float(seg.score) for seg in segs)
+    preds = [
+        _predict_segmented(texture, jnp.asarray(y), seg)[0]
+        for y, seg in zip(held_y, segs, strict=True)
+    ]
     err = prediction_error(
         np.concatenate([np.asarray(p) for p in preds]), np.concatenate([y[2:] for y in held_y])
     )
