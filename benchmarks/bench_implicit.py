@@ -38,7 +38,7 @@ import numpy as np
 import mtex_jax as mj
 from implicit_report import write_report
 from implicit_settings import CMU, EVAL_CLIPS, N_PROBES, RESULTS, TUNE_CLIP, WINDOW
-from mtex_jax.implicit import ImplicitModel, make_problem, track
+from mtex_jax.implicit import ImplicitModel, SynthesisConfig, make_problem, track
 from mtex_jax.internal import (
     sample_exact_traced as exact_sample_indices,
     sample_tree_traced as tree_sample_indices,
@@ -106,6 +106,9 @@ def load(fps: float | None) -> list[mj.Motion]:
 
 
 # --------------------------------------------------------------------------- 1. speed
+SYNTH_FRAMES = 200
+
+
 def bench_speed(salsa30, salsa120, quick: bool) -> list[dict]:
     rows = []
     targets = [1000, 2000, 4000, None] if not quick else [1000, None]
@@ -139,6 +142,19 @@ def bench_speed(salsa30, salsa120, quick: bool) -> list[dict]:
         reps_exact = 10 if model.n_examples < 20000 else 5
         c_ex, t_ex = _time(call(_exact), reps_exact)
         _, t_api = _time(call(lambda m, k, p, b: m.sample(k, p, 0.1)[1]), 20)
+        # the synthesis search with the default options (issue 18: K = 16 walks, exact leaf,
+        # look-ahead, run cap), one search per frame, against the same generator with the
+        # exact sampler; per generated frame
+        search_every = SynthesisConfig(continuation=1)
+        seed = clips[0][: WINDOW + 1]
+
+        def synth(sampler, model=model, seed=seed, cfg=search_every):
+            return lambda r: model.synthesize_poses(
+                jax.random.fold_in(key, r), seed, SYNTH_FRAMES, 1.0, sampler=sampler, config=cfg
+            )[0]
+
+        _, t_syn_tree = _time(synth("tree"), 5)
+        _, t_syn_exact = _time(synth("exact"), 3)
         s = model.summary()
         row = {
             "database": label,
@@ -158,13 +174,18 @@ def bench_speed(salsa30, salsa120, quick: bool) -> list[dict]:
             "compile_exact_s": c_ex - t_ex,
             "speedup_uniform": t_ex / t_tree,
             "speedup_weighted": t_ex / t_w,
+            "synth_tree_frame_s": t_syn_tree / SYNTH_FRAMES,
+            "synth_exact_frame_s": t_syn_exact / SYNTH_FRAMES,
+            "speedup_synthesis": t_syn_exact / t_syn_tree,
         }
         rows.append(row)
         print(
             f"[speed] {label:24s} n={row['n']:6d} b={row['b']:2d} "
             f"tree {1e6 * t_tree / N_PROBES:7.2f} µs/sample, weighted "
             f"{1e6 * t_w / N_PROBES:7.2f}, exact {1e6 * t_ex / N_PROBES:8.1f} "
-            f"→ ×{row['speedup_uniform']:.0f} / ×{row['speedup_weighted']:.0f}",
+            f"→ ×{row['speedup_uniform']:.0f} / ×{row['speedup_weighted']:.0f}; synthesis "
+            f"search (defaults) {1e6 * row['synth_tree_frame_s']:.0f} vs "
+            f"{1e6 * row['synth_exact_frame_s']:.0f} µs/frame (×{row['speedup_synthesis']:.0f})",
             flush=True,
         )
     return rows
@@ -202,15 +223,28 @@ def bench_quality(model: ImplicitModel, probes, quick: bool) -> dict:
 def bench_synthesis(model: ImplicitModel, start: mj.Motion, quick: bool) -> dict:
     n = 300 if not quick else 60
     ref_mean, ref_p95 = _step_stats(start)
-    settings: list[tuple[str, float, str, str, int]] = [  # label, β, sampler, leaf, K
-        ("tree, uniform leaf", 0.1, "tree", "uniform", 1),
-        ("tree, weighted leaf", 0.1, "tree", "weighted", 1),
-        ("tree, SIR K=16", 1.0, "tree", "uniform", 16),
-        ("exact", 1.0, "exact", "uniform", 1),
-        ("exact", 10.0, "exact", "uniform", 1),
+    paper = SynthesisConfig.paper()
+    settings: list[tuple[str, float, str, SynthesisConfig]] = [  # label, β, sampler, options
+        ("tree, defaults", 1.0, "tree", SynthesisConfig()),
+        ("exact, defaults", 1.0, "exact", SynthesisConfig()),
+        (
+            "tree, paper settings, uniform leaf",
+            0.1,
+            "tree",
+            eqx.tree_at(lambda c: c.leaf, paper, "uniform"),
+        ),
+        ("tree, paper settings (weighted leaf)", 0.1, "tree", paper),
+        (
+            "tree, paper settings, SIR K=16",
+            1.0,
+            "tree",
+            eqx.tree_at(lambda c: c.candidates, paper, 16),
+        ),
+        ("exact, paper settings", 1.0, "exact", paper),
+        ("exact, paper settings", 10.0, "exact", paper),
     ]
     rows = []
-    for label, beta, sampler, leaf, k in settings:
+    for label, beta, sampler, cfg in settings:
         stats = []
         for seed in range(3):
             m = model.synthesize(
@@ -220,10 +254,9 @@ def bench_synthesis(model: ImplicitModel, start: mj.Motion, quick: bool) -> dict
                 beta,
                 0.02,
                 sampler=sampler,  # type: ignore[arg-type]
-                leaf=leaf,  # type: ignore[arg-type]
-                candidates=k,
+                config=cfg,
             )
-            stats.append(_step_stats(m))
+        stats.append(_step_stats(m))
         mean = float(np.mean([s[0] for s in stats]))
         p95 = float(np.mean([s[1] for s in stats]))
         rows.append({"setting": label, "beta": beta, "step_mean": mean, "step_p95": p95})

@@ -118,8 +118,12 @@ def test_padded_encoding_equals_plain_encoding(model, salsa30):
 
 
 def test_gamma_is_database_std(model, train):
+    """pose_std is the database std; with the paper's weighting γ is that std too."""
     allpsi = np.concatenate([pose_vectors(model.feature_map, m) for m in train])
-    np.testing.assert_allclose(np.asarray(model.gamma), allpsi.std(axis=0), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(model.pose_std), allpsi.std(axis=0), rtol=1e-10)
+    paper = mj.implicit.learn(train[:4], WINDOW, weighting="channel")
+    psi4 = np.concatenate([pose_vectors(paper.feature_map, m) for m in train[:4]])
+    np.testing.assert_allclose(np.asarray(paper.gamma), psi4.std(axis=0), rtol=1e-10)
 
 
 # --------------------------------------------------------------------------- tree
@@ -302,7 +306,10 @@ def test_synthesis_exact_low_beta_replays_the_database(model, train):
     each step, so synthesis replays the clip that follows (IP §5 sanity check)."""
     clip = train[1]
     n = 40
-    y, idx = model.synthesize_poses(jax.random.PRNGKey(0), clip, n, 1e-6, 0.0, sampler="exact")
+    paper = mj.implicit.SynthesisConfig.paper()
+    y, idx = model.synthesize_poses(
+        jax.random.PRNGKey(0), clip, n, 1e-6, 0.0, sampler="exact", config=paper
+    )
     y_true = np.asarray(model.feature_map.encode(clip))[1 : WINDOW + 1 + n]
     np.testing.assert_allclose(np.asarray(y), y_true, atol=1e-8)
     first = model.clip_sizes[0]

@@ -37,8 +37,13 @@ def _build(args: argparse.Namespace, motions):
     from ..implicit import learn as implicit_learn
 
     positive_int("window", args.window)
+    me = getattr(args, "min_explained", None)
+    if me is not None and not 0 < me <= 1:
+        raise ValueError(f"--min-explained must be in (0, 1], got {me}")
     t0 = time.perf_counter()
-    model = implicit_learn(motions, args.window)
+    model = implicit_learn(
+        motions, args.window, weighting=getattr(args, "weighting", "body"), min_explained=me
+    )
     s = model.summary()
     print(
         f"database: {s['n_examples']} windows of {s['window']} frames at {s['fps']:g} Hz from "
@@ -79,7 +84,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         args.frames,
         args.beta,
         args.noise,
-        leaf=args.leaf,
+        sampler=args.sampler,
+        config=_synthesis_config(args),
     ).numpy()
     write_bvh(out, motion)
     print(
@@ -93,6 +99,28 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         gif = render_gif(motion, args.gif, title=f"implicit model, beta={args.beta:g}")
         print(f"wrote {gif}")
     return 0
+
+
+def _synthesis_config(args: argparse.Namespace):
+    from ..implicit import SynthesisConfig
+
+    for name in ("blend", "lookahead", "max_run"):
+        value = getattr(args, name)
+        if value is not None and value < 0:
+            raise ValueError(f"--{name.replace('_', '-')} must be ≥ 0, got {value}")
+    for name in ("continuation", "candidates"):
+        value = getattr(args, name)
+        if value is not None:
+            positive_int(name, value)
+    base = SynthesisConfig.paper() if args.paper else SynthesisConfig()
+    fields = ("blend", "leaf", "lookahead", "continuation", "max_run", "candidates")
+    opts = {f: getattr(base, f) for f in (*fields, "velocity")}
+    opts |= {f: getattr(args, f) for f in fields if getattr(args, f) is not None}
+    if args.velocity is not None:
+        opts["velocity"] = args.velocity == "on"
+    if not opts["velocity"] and opts["blend"] > 0:
+        raise ValueError("--blend > 0 needs --velocity on (it fades the velocity form's offset)")
+    return SynthesisConfig(**opts)
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
@@ -213,10 +241,46 @@ def register(subparsers) -> None:
         help="resample the clips to this rate first (default 30, as in the paper)",
     )
     s.add_argument(
+        "--paper",
+        action="store_true",
+        help="start from the paper's sampler (absolute poses, a search every frame, p(c_i|c_t) "
+        "in the leaf) instead of the defaults; the options below still override",
+    )
+    s.add_argument("--sampler", choices=("tree", "exact"), default="tree", help="default tree")
+    s.add_argument(
         "--leaf",
-        choices=("uniform", "weighted"),
-        default="uniform",
-        help="leaf rule of the tree search (default uniform)",
+        choices=("uniform", "weighted", "exact"),
+        default=None,
+        help="choice within the tree's leaf (default exact; --paper: weighted)",
+    )
+    s.add_argument(
+        "--velocity",
+        choices=("on", "off"),
+        default=None,
+        help="apply the example's change of pose (on, default) or jump to its pose (off)",
+    )
+    s.add_argument("--blend", type=int, default=None, help="transition blend frames (default 4)")
+    s.add_argument(
+        "--lookahead", type=int, default=None, help="frames a searched example must continue"
+    )
+    s.add_argument(
+        "--continuation", type=int, default=None, help="frames played per search (default 6)"
+    )
+    s.add_argument(
+        "--max-run", type=int, default=None, help="cap on verbatim frames (0: none; default 12)"
+    )
+    s.add_argument("--candidates", type=int, default=None, help="tree walks per search")
+    s.add_argument(
+        "--weighting",
+        choices=("body", "channel"),
+        default="body",
+        help="database channel weighting: body (joint reach, default) or channel (the paper)",
+    )
+    s.add_argument(
+        "--min-explained",
+        type=float,
+        default=None,
+        help="choose the tree depth b by explained variance (default b = floor(log2 n))",
     )
     s.add_argument(
         "--start", type=int, default=0, help="frame of the first clip that starts the seed window"

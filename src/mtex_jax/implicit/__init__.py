@@ -13,6 +13,14 @@ from ._learn import (
 from ._model import (
     ImplicitModel as ImplicitModel,
 )
+from ._synthesis import (
+    SynthesisConfig as SynthesisConfig,
+    fade_weight as fade_weight,
+)
+from ._synthesis_api import (
+    synthesize as synthesize,
+    synthesize_poses as synthesize_poses,
+)
 from ._tracking import (
     TrackingProblem as TrackingProblem,
     TrackResult as TrackResult,
@@ -23,6 +31,8 @@ from ._tree import (
     sign_codes as sign_codes,
 )
 from ._windows import (
+    channel_importance as channel_importance,
+    joint_reach as joint_reach,
     pose_vectors as pose_vectors,
     velocity_channels as velocity_channels,
 )
@@ -30,14 +40,20 @@ from ._windows import (
 __all__ = [
     "Camera",
     "ImplicitModel",
+    "SynthesisConfig",
     "TrackResult",
     "TrackingProblem",
+    "channel_importance",
     "decode_frame",
     "default_joints",
+    "fade_weight",
+    "joint_reach",
     "learn",
     "make_problem",
     "pose_vectors",
     "sign_codes",
+    "synthesize",
+    "synthesize_poses",
     "track",
     "velocity_channels",
 ]

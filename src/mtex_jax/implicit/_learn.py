@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Literal
 
 import jax.numpy as jnp
 import numpy as np
@@ -13,7 +14,16 @@ import numpy as np
 from ..motion import FeatureMap, Motion
 from ._model import ImplicitModel
 from ._tree import _codes_np, _right_svd
-from ._windows import _MAX_BITS, _check_motion_values, _window_view, pose_vectors, velocity_channels
+from ._windows import (
+    _MAX_BITS,
+    _check_motion_values,
+    _window_view,
+    channel_importance,
+    pose_vectors,
+    velocity_channels,
+)
+
+Weighting = Literal["body", "channel"]
 
 
 def learn(
@@ -25,6 +35,8 @@ def learn(
     max_components: int | None = None,
     feature_map: FeatureMap | None = None,
     min_std: float = 1e-8,
+    weighting: Weighting = "body",
+    min_explained: float | None = None,
 ) -> ImplicitModel:
     """Build the database and its sign tree from training clips (IP §4, SPEC §7).
 
@@ -37,6 +49,17 @@ def learn(
         max_components: optional further cap on ``b`` (at most 30: codes are int32).
         feature_map: observation map to use (default ``FeatureMap.fit(motions)``).
         min_std: floor on each parameter's ``γ`` (relative to the largest ``γ``).
+        weighting: how pose-vector channels are scaled into model coordinates ``ψ_c / γ_c``.
+            ``"channel"`` (the paper, IP Eq. 2): ``γ_c`` is each channel's database standard
+            deviation, so every channel weighs the same. ``"body"`` (default): each channel is
+            first expressed as the distance it moves the body, ``ψ_c · m_c`` with ``m_c`` from
+            :func:`channel_importance` (joint reach × channel scale), and then the pose half
+            and the velocity half are each whitened as a group,
+            ``γ_c = g_group / m_c`` with ``g_group² = mean_{c ∈ group} Var(ψ_c m_c)``, so the
+            PCA follows the limbs and trunk rather than small joints.
+        min_explained: if given (in ``(0, 1]``), choose ``b`` as the fewest components whose
+            explained variance reaches this fraction (still capped as above) instead of
+            ``⌊log₂ n⌋``. Exclusive with ``n_components``.
 
     Returns:
         the model (``summary()`` reports ``b``, the explained variance and leaf sizes).
@@ -74,16 +97,40 @@ def learn(
         for m in motions:
             fm._check_motion(m)
     for arg, name in ((n_components, "n_components"), (max_components, "max_components")):
-        if arg is not None and (not isinstance(arg, int | np.integer) or arg < 1):
+        if arg is not None and (
+            isinstance(arg, bool) or not isinstance(arg, int | np.integer) or arg < 1
+        ):
             raise ValueError(f"ImplicitModel.build: {name} must be a positive integer")
+    if weighting not in ("body", "channel"):
+        raise ValueError(
+            f"ImplicitModel.build: weighting must be 'body' or 'channel', got {weighting!r}"
+        )
+    if min_explained is not None:
+        if isinstance(min_explained, bool) or not (
+            isinstance(min_explained, float | int) and 0 < min_explained <= 1
+        ):
+            raise ValueError(
+                f"ImplicitModel.build: min_explained must be in (0, 1], got {min_explained!r}"
+            )
+        if n_components is not None:
+            raise ValueError("ImplicitModel.build: give n_components or min_explained, not both")
 
     psis = [pose_vectors(fm, m) for m in motions]
     allpsi = np.concatenate(psis, axis=0)
     if not np.all(np.isfinite(allpsi)):
         raise ValueError("ImplicitModel.build: non-finite pose vectors")
-    gamma = allpsi.std(axis=0)
-    gamma = np.maximum(gamma, min_std * max(float(gamma.max()), 1e-300))
+    pose_std = allpsi.std(axis=0)
+    pose_std = np.maximum(pose_std, min_std * max(float(pose_std.max()), 1e-300))
     p = allpsi.shape[1]
+    if weighting == "channel":
+        gamma = pose_std
+    else:
+        imp = np.tile(channel_importance(fm), 2)
+        spread = allpsi.std(axis=0) * imp
+        g = np.empty(p)
+        for half in (slice(0, p // 2), slice(p // 2, p)):
+            g[half] = max(float(np.sqrt(np.mean(spread[half] ** 2))), 1e-300)
+        gamma = g / imp
     vel_ch = np.asarray(velocity_channels(fm), dtype=np.int64)
 
     wins, succ, clip_idx, frame_idx, sizes, accs = [], [], [], [], [], []
@@ -113,7 +160,11 @@ def learn(
     rank = int(np.sum(s > s[0] * 1e-10)) if s[0] > 0 else 0
     if rank == 0:
         raise ValueError("ImplicitModel.build: all windows are identical")
-    b = math.floor(math.log2(n)) if n_components is None else int(n_components)
+    frac = np.cumsum(s**2) / np.sum(s**2)
+    if min_explained is not None:
+        b = int(np.searchsorted(frac, float(min_explained) - 1e-12) + 1)
+    else:
+        b = math.floor(math.log2(n)) if n_components is None else int(n_components)
     b = min(b, w, rank, _MAX_BITS)
     if max_components is not None:
         b = min(b, int(max_components))
@@ -139,7 +190,9 @@ def learn(
         leaf_max=leaf_max,
         explained_variance=explained,
         clip_sizes=tuple(sizes),
+        weighting=weighting,
         gamma=f(gamma),
+        pose_std=f(pose_std),
         mean=f(mean),
         basis=f(basis),
         sigma=f(sigma),

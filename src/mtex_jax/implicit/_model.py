@@ -59,9 +59,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
-from ..core import MAX_GENERATED_FRAMES, check_count, check_key
+from ..core import check_key
 from ..motion import FeatureMap, Motion
-from ._tree import _sample_exact_jit, _sample_tree_jit, _synthesize_jit
+from ._synthesis_api import SynthesisConfig, SynthLeafRule, synthesize, synthesize_poses
+from ._tree import _sample_exact_jit, _sample_tree_jit
 from ._windows import (
     _MAX_BITS,
     _check_beta,
@@ -91,7 +92,12 @@ class ImplicitModel(eqx.Module):
         explained_variance: fraction of the windows' variance kept by the ``b`` components
             (static float).
         clip_sizes: number of examples contributed by each training clip (static).
-        gamma: ``(P,)`` database standard deviation of each pose parameter (``Γ = diag(γ²)``).
+        weighting: how ``γ`` was chosen (static): ``"channel"`` (the paper: ``γ`` is each
+            parameter's database standard deviation) or ``"body"`` (joint-reach weights,
+            pose and velocity groups whitened; see :func:`~mtex_jax.implicit.learn`).
+        gamma: ``(P,)`` scale of each pose parameter in model coordinates (``Γ = diag(γ²)``).
+        pose_std: ``(P,)`` database standard deviation of each pose parameter (the unit of
+            the synthesis and tracking noise).
         mean: ``(W,)`` mean window ``Ψ̄`` in model coordinates.
         basis: ``(W, b)`` principal directions ``Ũ`` (orthonormal columns).
         sigma: ``(b,)`` standard deviation ``σ_l`` of each coefficient.
@@ -117,7 +123,9 @@ class ImplicitModel(eqx.Module):
     leaf_max: int = eqx.field(static=True)
     explained_variance: float = eqx.field(static=True)
     clip_sizes: tuple[int, ...] = eqx.field(static=True)
+    weighting: str = eqx.field(static=True)
     gamma: Float[Array, " P"]
+    pose_std: Float[Array, " P"]
     mean: Float[Array, " W"]
     basis: Float[Array, "W b"]
     sigma: Float[Array, " b"]
@@ -138,12 +146,17 @@ class ImplicitModel(eqx.Module):
         n = np.shape(self.windows)[0] if np.ndim(self.windows) == 2 else -1
         if d < 1:
             raise ValueError(f"ImplicitModel.window must be ≥ 1, got {d}")
+        if self.weighting not in ("body", "channel"):
+            raise ValueError(
+                f"ImplicitModel.weighting must be 'body' or 'channel', got {self.weighting!r}"
+            )
         if not 1 <= b <= _MAX_BITS:
             raise ValueError(f"ImplicitModel.n_components must be in 1..{_MAX_BITS}, got {b}")
         if n < 1:
             raise ValueError("ImplicitModel: empty database")
         expected = {
             "gamma": (p,),
+            "pose_std": (p,),
             "mean": (w,),
             "basis": (w, b),
             "sigma": (b,),
@@ -196,6 +209,7 @@ class ImplicitModel(eqx.Module):
             "window_dim": self.window_dim,
             "n_components": self.n_components,
             "explained_variance": self.explained_variance,
+            "weighting": self.weighting,
             "leaf_max": self.leaf_max,
             "nonempty_leaves": nonempty,
             "leaves": 1 << self.n_components,
@@ -356,52 +370,29 @@ class ImplicitModel(eqx.Module):
         beta: float | Float[ArrayLike, ""],
         noise: float | Float[ArrayLike, ""] = 0.0,
         *,
-        leaf: LeafRule = "uniform",
         sampler: Literal["tree", "exact"] = "tree",
-        candidates: int = 1,
+        config: SynthesisConfig | None = None,
+        leaf: SynthLeafRule | None = None,
+        candidates: int | None = None,
         start_position: Float[ArrayLike, " 3"] | None = None,
         start_heading: float | None = None,
     ) -> Motion:
-        """Generate motion frame by frame (IP §5) and decode it to a :class:`Motion`.
-
-        Each step samples a database example for the current ``d``-frame history (tree or
-        exact sampler) and appends its successor's pose ``y_{i+1}`` plus Gaussian noise of
-        standard deviation ``noise · γ`` (per parameter, database units); the velocity half of
-        the new pose vector is recomputed as the frame difference of the generated poses, so
-        the history always describes the generated motion. One ``lax.scan``.
-
-        Args:
-            key: PRNG key.
-            start_window: a clip (its frames ``0 … d`` seed the history, and its frame 1 fixes
-                the start position and heading) or a ``(d, P)`` array of pose vectors.
-            n_frames: frames to generate after the ``d`` seed frames.
-            beta: sampling temperature ``> 0``.
-            noise: innovation scale ``≥ 0``.
-            leaf: leaf rule of the tree sampler.
-            sampler: ``"tree"`` (IP Eq. 7–8) or ``"exact"`` (IP Eq. 3).
-            candidates: tree walks per step (see :meth:`sample`; 1 = the paper's sampler).
-            start_position, start_heading: root position and yaw of the first output frame
-                (default: from ``start_window`` if it is a clip, else the origin and 0).
-
-        Returns:
-            a clip of ``d + n_frames`` frames: the seed poses followed by the generated ones.
-        """
-        poses, _ = self.synthesize_poses(
+        """Generate motion (IP §5 and the extensions of :class:`SynthesisConfig`) as a
+        :class:`Motion`; see :func:`~mtex_jax.implicit.synthesize` for the arguments."""
+        return synthesize(
+            self,
             key,
             start_window,
             n_frames,
             beta,
             noise,
-            leaf=leaf,
             sampler=sampler,
+            config=config,
+            leaf=leaf,
             candidates=candidates,
+            start_position=start_position,
+            start_heading=start_heading,
         )
-        sp, sh = start_position, start_heading
-        if isinstance(start_window, Motion):
-            p0, h0 = self.feature_map.start_of(start_window[1:])
-            sp = p0 if sp is None else sp
-            sh = h0 if sh is None else sh
-        return self.feature_map.decode(poses, sp, sh)
 
     def synthesize_poses(
         self,
@@ -411,57 +402,22 @@ class ImplicitModel(eqx.Module):
         beta: float | Float[ArrayLike, ""],
         noise: float | Float[ArrayLike, ""] = 0.0,
         *,
-        leaf: LeafRule = "uniform",
         sampler: Literal["tree", "exact"] = "tree",
-        candidates: int = 1,
+        config: SynthesisConfig | None = None,
+        leaf: SynthLeafRule | None = None,
+        candidates: int | None = None,
     ) -> tuple[Float[Array, "T D"], Int[Array, " n_frames"]]:
         """Like :meth:`synthesize` but returns observation vectors ``(d + n_frames, D)`` (seed
-        then generated, FeatureMap units) and the sampled example of each generated frame."""
-        check_key(key, "synthesize")
-        _check_beta(beta, "synthesize")
-        if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
-            raise ValueError(f"synthesize: n_frames must be an integer, got {n_frames!r}")
-        if n_frames < 1:
-            raise ValueError(f"synthesize: n_frames must be ≥ 1, got {n_frames}")
-        check_count(n_frames, "synthesize: n_frames", MAX_GENERATED_FRAMES)
-        if leaf not in ("uniform", "weighted"):
-            raise ValueError(f"synthesize: leaf must be 'uniform' or 'weighted', got {leaf!r}")
-        if sampler not in ("tree", "exact"):
-            raise ValueError(f"synthesize: sampler must be 'tree' or 'exact', got {sampler!r}")
-        _check_candidates(candidates, "synthesize")
-        if _is_concrete(noise):
-            nz = np.asarray(noise)
-            if nz.shape != () or not (np.isfinite(nz) and nz >= 0):
-                raise ValueError(f"synthesize: noise must be a finite scalar ≥ 0, got {noise!r}")
-        if isinstance(start_window, Motion):
-            self.feature_map._check_motion(start_window)
-            if start_window.n_frames < self.window + 1:
-                raise ValueError(
-                    f"synthesize: the start clip needs at least {self.window + 1} frames, "
-                    f"got {start_window.n_frames}"
-                )
-            win = jnp.asarray(pose_vectors(self.feature_map, start_window[: self.window + 1]))
-        else:
-            win = jnp.asarray(start_window)
-            if win.shape != (self.window, self.pose_dim):
-                raise ValueError(
-                    f"synthesize: start_window must be a Motion or a ({self.window}, "
-                    f"{self.pose_dim}) array of pose vectors, got shape {win.shape}"
-                )
-            if _is_concrete(win) and not bool(jnp.all(jnp.isfinite(win))):
-                raise ValueError("synthesize: start_window contains NaN or inf")
-        dtype = self.windows.dtype
-        win = win.astype(dtype)
-        gen, idx = _synthesize_jit(
+        then generated, FeatureMap units) and the database example of each generated frame."""
+        return synthesize_poses(
             self,
             key,
-            win,
-            int(n_frames),
-            jnp.asarray(beta, dtype),
-            jnp.asarray(noise, dtype),
-            leaf,
-            sampler,
-            int(candidates),
+            start_window,
+            n_frames,
+            beta,
+            noise,
+            sampler=sampler,
+            config=config,
+            leaf=leaf,
+            candidates=candidates,
         )
-        dim = self.feature_map.dim
-        return jnp.concatenate([win[:, :dim], gen], axis=0), idx

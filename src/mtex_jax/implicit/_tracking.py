@@ -243,7 +243,7 @@ def _track_impl(
     dim = fm.dim
     dt = model.windows.dtype
     jidx = np.asarray(problem.joints)
-    g = model.gamma.astype(dt)[:dim]
+    g = model.pose_std.astype(dt)[:dim]
     acc = model.acceleration_std.astype(dt)
     n = n_particles
     # root displacement / yaw change already are velocities: constant velocity keeps them

@@ -153,36 +153,3 @@ _sample_tree_traced = eqx.debug.assert_max_traces(tree_sample_indices, max_trace
 _sample_tree_jit = eqx.filter_jit(_sample_tree_traced)
 _sample_exact_traced = eqx.debug.assert_max_traces(exact_sample_indices, max_traces=None)
 _sample_exact_jit = eqx.filter_jit(_sample_exact_traced)
-
-
-def _synthesize_impl(
-    model: ImplicitModel,
-    key: PRNGKeyArray,
-    win0: Float[Array, "d P"],
-    n_frames: int,
-    beta: Array,
-    noise: Array,
-    leaf: str,
-    sampler: str,
-    candidates: int,
-) -> tuple[Array, Array]:
-    dim = model.feature_map.dim
-    g = model.gamma.astype(win0.dtype)
-
-    def step(win, k):
-        k_s, k_n = jax.random.split(k)
-        probe = model.scale_windows(win)[None]
-        if sampler == "tree":
-            idx = tree_sample_indices(model, k_s, probe, beta, leaf, candidates)[0]
-        else:
-            idx = exact_sample_indices(model, k_s, probe, beta)[0]
-        pose = model.successors[idx, :dim].astype(win.dtype)
-        pose = pose + noise * g[:dim] * jax.random.normal(k_n, (dim,), win.dtype)
-        psi = jnp.concatenate([pose, pose - win[-1, :dim]])
-        return jnp.concatenate([win[1:], psi[None]], axis=0), (pose, idx)
-
-    _, (poses, idx) = lax.scan(step, win0, jax.random.split(key, n_frames))
-    return poses, idx
-
-
-_synthesize_jit = eqx.filter_jit(_synthesize_impl)

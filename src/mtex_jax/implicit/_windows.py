@@ -85,3 +85,53 @@ def _window_view(psi: np.ndarray, d: int) -> np.ndarray:
     """All ``(T' − d + 1, d, P)`` windows of consecutive rows (oldest first)."""
     v = np.lib.stride_tricks.sliding_window_view(psi, d, axis=0)  # (n, P, d)
     return np.ascontiguousarray(np.moveaxis(v, -1, 1))
+
+
+def joint_reach(fm: FeatureMap) -> np.ndarray:
+    """Reach of each joint ``(J,)``: path length (skeleton units) from the joint to its farthest
+    descendant joint or end site; the root's is the whole figure's largest reach."""
+    sk = fm.skeleton
+    parents = np.asarray(sk.parents)
+    length = np.linalg.norm(np.asarray(sk.offsets, dtype=np.float64), axis=1)
+    reach = np.zeros(sk.n_joints)
+    for parent, off in sk.end_sites:
+        reach[parent] = max(reach[parent], float(np.linalg.norm(off)))
+    for _ in range(sk.n_joints):  # relax until every parent covers its children
+        changed = False
+        for j in range(1, sk.n_joints):
+            p = parents[j]
+            if p >= 0 and reach[j] + length[j] > reach[p]:
+                reach[p] = reach[j] + length[j]
+                changed = True
+        if not changed:
+            break
+    return reach
+
+
+def channel_importance(fm: FeatureMap) -> np.ndarray:
+    """How far a unit change of each observation channel moves the body, ``(D,)``.
+
+    ``y_c`` is z-scored, so one unit is ``scale_c`` raw units. A joint-rotation channel (radians)
+    moves the joints below by up to ``scale_c · reach_j`` (:func:`joint_reach`); the root's
+    heading and tilt channels move the figure by its largest reach; root displacement, height
+    and local-position channels are lengths already (``scale_c``).
+    """
+    sk = fm.skeleton
+    reach = joint_reach(fm)
+    body = max(float(reach.max()), 1e-12)
+    floor = 0.02 * body  # a joint whose rotation moves nothing still counts a little
+    index = {name: j for j, name in enumerate(sk.names)}
+    scale = np.asarray(fm.scale, dtype=np.float64)[np.asarray(fm.active, dtype=np.int64)]
+    imp = np.empty(fm.dim)
+    for c, name in enumerate(fm.active_names):
+        joint, _, kind = name.rpartition(".")
+        if name.startswith("root.dyaw") or name.startswith("root.tilt"):
+            lever = body
+        elif name.startswith("root."):
+            lever = 1.0
+        elif kind.startswith("r"):
+            lever = max(float(reach[index[joint]]), floor)
+        else:  # local position channel
+            lever = 1.0
+        imp[c] = scale[c] * lever
+    return imp

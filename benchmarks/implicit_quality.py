@@ -1,0 +1,185 @@
+"""The implicit-model rows of the quality benchmark, alone (issue 18).
+
+Same split, start windows, generator calls and judge as ``bench_quality.py``'s implicit
+section (30 Hz, window 10, β = 1, 20 s from held-out start windows, judged by
+``metrics.MotionJudge`` against the held-out clips at 30 Hz).
+
+``--validate`` never touches the held-out clips: it learns on 7 of the 10 training clips and
+judges against the other 3 (60_09, 60_10, 60_11), for choosing defaults. Without it, the model
+is learned on all 10 training clips and judged on the held-out clips (the reported figures).
+
+Run: ``.venv/bin/python benchmarks/implicit_quality.py [--validate] [--config NAME=k=v,...]``.
+Writes ``benchmarks/results/implicit_quality{,_validation}.{md,json}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # as bench_quality.py
+
+import numpy as np
+
+import mtex_jax as mj
+from mtex_jax import metrics
+from mtex_jax.implicit import SynthesisConfig
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_quality import HELD, IMPLICIT_FPS, SECONDS, TRAIN, load
+
+VALID_HELD = ["60_09", "60_10", "60_11"]
+
+
+def parse_config(text: str) -> tuple[str, dict[str, Any], dict[str, Any]]:
+    """``name:k=v,k=v`` → (name, synthesis options, learn options); ``paper`` alone is
+    ``SynthesisConfig.paper()`` with ``weighting=channel``."""
+    name, _, rest = text.partition(":")
+    syn: dict[str, Any] = {}
+    lrn: dict[str, Any] = {}
+    if name.startswith("paper"):
+        p = SynthesisConfig.paper()
+        syn = {f: getattr(p, f) for f in SynthesisConfig.__dataclass_fields__}
+        lrn = {"weighting": "channel"}
+    for kv in filter(None, rest.split(",")):
+        k, _, v = kv.partition("=")
+        if k in ("weighting",):
+            lrn[k] = v
+        elif k in ("min_explained",):
+            lrn[k] = float(v)
+        elif k == "velocity":
+            syn[k] = v.lower() in ("1", "true", "yes")
+        elif k == "leaf":
+            syn[k] = v
+        elif k == "sampler":
+            syn["_sampler"] = v
+        else:
+            syn[k] = int(v)
+    return name, syn, lrn
+
+
+def run(configs: list[str], validate: bool, n_syn: int, seconds: float) -> dict[str, Any]:
+    train_names = [t for t in TRAIN if t not in VALID_HELD] if validate else TRAIN
+    held_names = VALID_HELD if validate else HELD
+    train_raw, held_raw = load(train_names), load(held_names)
+    train30 = [m.resample(IMPLICIT_FPS) for m in train_raw]
+    held30 = [m.resample(IMPLICIT_FPS) for m in held_raw]
+    judge30 = metrics.MotionJudge(train30, held30, fps=IMPLICIT_FPS)
+    rows: dict[str, dict[str, Any]] = {k + " @30 Hz": v for k, v in judge30.real_rows().items()}
+    keys = jax.random.split(jax.random.key(2026), n_syn)
+    n30 = int(seconds * IMPLICIT_FPS)
+    models: dict[tuple, Any] = {}
+    info: dict[str, Any] = {}
+    for text in configs:
+        name, syn, lrn = parse_config(text)
+        sampler = syn.pop("_sampler", "tree")
+        key_l = tuple(sorted(lrn.items()))
+        if key_l not in models:
+            t0 = time.perf_counter()
+            models[key_l] = mj.implicit.learn(train30, window=10, fps=IMPLICIT_FPS, **lrn)
+            m = models[key_l]
+            info[str(dict(lrn))] = m.summary() | {"learn_s": time.perf_counter() - t0}
+        model = models[key_l]
+        cfg = SynthesisConfig(**syn)
+        succ = metrics.successor_array(model.clip_index, model.frame_index)
+        motions, idx = [], []
+        t0 = time.perf_counter()
+        for j, k in enumerate(keys):
+            h = held30[j % len(held30)]
+            s0 = 30 + 97 * (j // len(held30))  # as bench_quality.py (8 syntheses)
+            s0 = s0 % max(h.n_frames - model.window - 1, 1)  # more syntheses: wrap
+            start = h[s0 : s0 + model.window + 1]
+            motions.append(model.synthesize(k, start, n30, beta=1.0, sampler=sampler, config=cfg))
+            idx.append(
+                np.asarray(
+                    model.synthesize_poses(k, start, n30, 1.0, sampler=sampler, config=cfg)[1]
+                )
+            )
+        wall = time.perf_counter() - t0
+        r = judge30.judge(motions, indices=idx, successor=succ, index_fps=IMPLICIT_FPS)
+        r["wall_s"] = wall
+        r["config"] = text  # type: ignore[assignment]
+        rows[name] = r
+        print(
+            f"{name:28s} speed {r['speed_ratio']:6.2f} acc {r['acceleration_ratio']:6.2f} "
+            f"jerk {r['jerk_ratio']:6.2f} jumps {r['jump_share_above_p99']:.3f} "
+            f"copy {r.get('copy_fraction', float('nan')):.2f} "
+            f"longest {r.get('copy_longest_s', float('nan')):.1f}s  [{wall:.0f}s] {text}",
+            flush=True,
+        )
+    return {
+        "validate": validate,
+        "train": train_names,
+        "held": held_names,
+        "rows": rows,
+        "models": info,
+    }
+
+
+def _f(x: Any, nd: int = 2) -> str:
+    return "—" if x is None else (f"{x:.{nd}f}" if isinstance(x, float) else str(x))
+
+
+def write(res: dict[str, Any], out: Path) -> None:
+    out.with_suffix(".json").write_text(json.dumps(res, indent=1, default=float))
+    real = next(v for k, v in res["rows"].items() if k.startswith("real"))
+    L = [
+        "# Implicit model: motion quality" + (" (validation split)" if res["validate"] else ""),
+        "",
+        "`benchmarks/implicit_quality.py`"
+        + (" --validate" if res["validate"] else "")
+        + f"; train {', '.join(res['train'])}; judged against {', '.join(res['held'])}; "
+        "30 Hz, window 10, β = 1, no noise, 20 s from start windows of the judged clips. "
+        "Ratios: W1 distance over the real-vs-real floor. Jumps: share of frame-to-frame "
+        "maximum joint jumps above the judged clips' p99 (real clips: "
+        f"{_f(real.get('jump_share_above_p99'), 3)}). Copy: share of frames continuing the "
+        "previous database frame; longest verbatim run.",
+        "",
+    ]
+    for k, m in res["models"].items():
+        L.append(
+            f"- model {k}: {m['n_examples']} windows, b = {m['n_components']}, explained "
+            f"variance {100 * m['explained_variance']:.1f} %, leaf max {m['leaf_max']}"
+        )
+    L += [
+        "",
+        "| set | speed | acc | jerk | jumps > p99 | copy | longest (s) | config |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
+    for name, r in res["rows"].items():
+        L.append(
+            f"| {name} | {_f(r['speed_ratio'])} | {_f(r['acceleration_ratio'])} "
+            f"| {_f(r['jerk_ratio'])} | {_f(r['jump_share_above_p99'], 3)} "
+            f"| {_f(r.get('copy_fraction'))} | {_f(r.get('copy_longest_s'), 1)} "
+            f"| `{r.get('config', '')}` |"
+        )
+    out.with_suffix(".md").write_text("\n".join(L) + "\n")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap.add_argument("--validate", action="store_true", help="7 training clips vs 3 (no held-out)")
+    ap.add_argument("--syntheses", type=int, default=8)
+    ap.add_argument("--seconds", type=float, default=SECONDS)
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument(
+        "configs",
+        nargs="*",
+        default=["default:", "paper:", "paper exact:sampler=exact"],
+        help="NAME:k=v,... (SynthesisConfig fields, weighting, min_explained, sampler)",
+    )
+    args = ap.parse_args()
+    res = run(args.configs, args.validate, args.syntheses, args.seconds)
+    stem = "implicit_quality_validation" if args.validate else "implicit_quality"
+    write(res, args.out or REPO / "benchmarks" / "results" / stem)
+
+
+if __name__ == "__main__":
+    main()

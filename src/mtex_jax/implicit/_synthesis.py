@@ -1,0 +1,273 @@
+"""Synthesis with the implicit model (IP §5, §7): the paper's frame-by-frame sampler and the
+extensions that make its motion smooth and new — velocity form, leaf choice by exact distance,
+blended transitions, dead-end look-ahead, multi-frame continuation and a cap on verbatim runs.
+
+State of the generator after frame ``t``: the history window (``d`` pose vectors), the database
+example ``e_t`` whose successor gave frame ``t``, a pose offset ``o`` and its age ``a`` (frames
+since the last transition). One step:
+
+1. **Continue or search.** If ``e_t`` has a successor example in its clip and fewer than
+   ``continuation`` frames have passed since the last search, ``e_{t+1} = e_t + 1`` (the next
+   window of the same clip). Otherwise search (tree, IP Eq. 7–8, or exact, IP Eq. 3) with the
+   history as probe; the leaf (or the exact kernel) only admits examples with at least
+   ``lookahead`` further frames in their clip (dead ends), and, once a verbatim run has lasted
+   ``max_run`` frames, none within ``d`` frames of ``e_t + 1`` in the same clip.
+2. **Transition.** If ``e_{t+1} ≠ e_t + 1``: in the velocity form the offset becomes
+   ``o = ŷ_t − y(e_{t+1})``, the current pose minus the example's own current pose, and
+   ``a = 0``; in the paper's form ``o = 0``.
+3. **Pose.** ``ŷ_{t+1} = y(e_{t+1} + 1) + w(a + 1) ⊙ o`` (``y(e + 1)`` is the example's
+   successor pose), ``a ← a + 1``. With ``blend = B > 0`` the offset fades out smoothly,
+   ``w(a) = 1 − S(min(a / (B + 1), 1))`` with ``S(x) = 3x² − 2x³``: the change of pose of the
+   example is applied at the transition and the motion rejoins the example's absolute poses
+   after ``B`` frames with continuous velocity. With ``B = 0`` the offset is kept
+   (``w = 1``): the pure velocity form ``ŷ_{t+1} = ŷ_t + Δy(e_{t+1})``. Root displacement and
+   yaw change already are velocities: their offset always fades over ``B`` frames (none when
+   ``B = 0``).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, Float, Int, PRNGKeyArray
+
+from ._tree import _descend
+from ._windows import velocity_channels
+
+if TYPE_CHECKING:
+    from ._model import ImplicitModel
+
+SynthLeafRule = Literal["uniform", "weighted", "exact"]
+_LEAVES = ("uniform", "weighted", "exact")
+
+
+def _check_int(value: object, name: str, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+        raise ValueError(f"SynthesisConfig.{name} must be an integer ≥ {low}, got {value!r}")
+    return int(value)
+
+
+class SynthesisConfig(eqx.Module):
+    """How :meth:`ImplicitModel.synthesize` turns sampled examples into motion (all static).
+
+    The defaults were chosen on a validation split of the training clips
+    (``benchmarks/implicit_quality.py --validate``); :meth:`paper` gives the published
+    sampler (IP §5).
+
+    Attributes:
+        velocity: apply the chosen example's change of pose to the current pose (``True``)
+            instead of jumping to its absolute pose (``False``, the paper).
+        blend: frames over which a transition's pose offset fades out (``0``: never, the pure
+            velocity form). Needs ``velocity=True`` when ``> 0``.
+        leaf: choice within the tree's leaf: ``"uniform"``, ``"weighted"`` by ``p(c_i | c_t)``
+            (the paper, IP Eq. 8) or ``"exact"`` by the exact kernel of IP Eq. 3 on the leaf's
+            few members.
+        lookahead: a searched example needs at least this many further frames in its clip
+            (``0``: no check). Avoids dead ends.
+        continuation: frames played from one example before the next search (``1``: a search
+            per frame, the paper).
+        max_run: after this many verbatim frames (continuing the previous database frame),
+            the next search excludes the neighbourhood of the continuation (``0``: no cap).
+        candidates: tree walks per search; the exact kernel picks among them (``1``: one walk).
+    """
+
+    velocity: bool = eqx.field(static=True, default=True)
+    blend: int = eqx.field(static=True, default=4)
+    leaf: str = eqx.field(static=True, default="exact")
+    lookahead: int = eqx.field(static=True, default=8)
+    continuation: int = eqx.field(static=True, default=6)
+    max_run: int = eqx.field(static=True, default=12)
+    candidates: int = eqx.field(static=True, default=16)
+
+    def __check_init__(self) -> None:
+        if not isinstance(self.velocity, bool):
+            raise ValueError(f"SynthesisConfig.velocity must be a bool, got {self.velocity!r}")
+        _check_int(self.blend, "blend", 0)
+        _check_int(self.lookahead, "lookahead", 0)
+        _check_int(self.continuation, "continuation", 1)
+        _check_int(self.max_run, "max_run", 0)
+        _check_int(self.candidates, "candidates", 1)
+        if self.leaf not in _LEAVES:
+            raise ValueError(
+                f"SynthesisConfig.leaf must be one of {', '.join(_LEAVES)}, got {self.leaf!r}"
+            )
+        if self.blend > 0 and not self.velocity:
+            raise ValueError(
+                "SynthesisConfig.blend > 0 needs velocity=True (it fades the velocity form's "
+                "pose offset)"
+            )
+
+    @classmethod
+    def paper(cls) -> SynthesisConfig:
+        """The published sampler (IP §5, Eq. 7–8): absolute poses, a search every frame,
+        ``p(c_i | c_t)`` in the leaf, no blending, no look-ahead, no run cap."""
+        return cls(velocity=False, blend=0, leaf="weighted", lookahead=0, continuation=1, max_run=0)
+
+
+def _remaining(model: ImplicitModel) -> np.ndarray:
+    """Further examples after each example in its clip, ``(n,)`` (static, from clip sizes)."""
+    return np.concatenate([np.arange(s - 1, -1, -1) for s in model.clip_sizes]).astype(np.int32)
+
+
+def _pick(key: PRNGKeyArray, logw: Array, ok: Array, valid: Array) -> Array:
+    """Categorical pick over ``logw`` restricted to ``ok``, or to ``valid`` if none is ok."""
+    masked = jnp.where(ok, logw, -jnp.inf)
+    fallback = jnp.where(valid, logw, -jnp.inf)
+    return jax.random.categorical(key, jnp.where(jnp.any(ok), masked, fallback))
+
+
+def _admissible(
+    model: ImplicitModel, cfg: SynthesisConfig, ex: Array, cur: Array, run: Array, rem: Array
+) -> Array:
+    """Which examples ``ex`` a search may return (look-ahead and run cap)."""
+    ok = rem[ex] >= cfg.lookahead
+    if cfg.max_run > 0:
+        same = model.clip_index[ex] == model.clip_index[jnp.maximum(cur, 0)]
+        near = jnp.abs(model.frame_index[ex] - model.frame_index[jnp.maximum(cur, 0)] - 1)
+        banned = (cur >= 0) & (run >= cfg.max_run) & same & (near <= model.window)
+        ok = ok & ~banned
+    return ok
+
+
+def _search_tree(
+    model: ImplicitModel,
+    cfg: SynthesisConfig,
+    key: PRNGKeyArray,
+    probe: Float[Array, " W"],
+    beta: Array,
+    cur: Array,
+    run: Array,
+    rem: Array,
+) -> Int[Array, ""]:
+    """Tree search (IP Eq. 7–8) with the configured leaf rule and admissibility mask."""
+    c = model.coefficients(probe)
+    scale = jnp.sqrt(beta) * model.sigma.astype(c.dtype)
+    n = model.n_examples
+
+    def walk(k: PRNGKeyArray) -> tuple[Array, Array]:
+        k_walk, k_leaf = jax.random.split(k)
+        u = jax.random.uniform(k_walk, (model.n_components,), dtype=c.dtype)
+        lo, hi, _ = _descend(model.sorted_codes, c / scale, u)
+        pos = lo + jnp.arange(model.leaf_max, dtype=jnp.int32)
+        valid = pos < hi
+        ex = model.order[jnp.minimum(pos, n - 1)]
+        if cfg.leaf == "uniform":
+            logw = jnp.zeros(pos.shape, c.dtype)
+        elif cfg.leaf == "weighted":
+            z = (model.sorted_coeffs[jnp.minimum(pos, n - 1)].astype(c.dtype) - c) / scale
+            logw = -0.5 * jnp.sum(z * z, axis=-1)
+        else:
+            diff = model.windows[ex].astype(c.dtype) - probe
+            logw = -0.5 * jnp.sum(diff * diff, axis=-1) / beta
+        ok = valid & _admissible(model, cfg, ex, cur, run, rem)
+        j = _pick(k_leaf, logw, ok, valid)
+        return ex[j], ok[j]
+
+    if cfg.candidates == 1:
+        return walk(key)[0]
+    k_walks, k_pick = jax.random.split(key)
+    idx, ok = jax.vmap(walk)(jax.random.split(k_walks, cfg.candidates))
+    diff = model.windows[idx].astype(c.dtype) - probe
+    logp = -0.5 * jnp.sum(diff * diff, axis=-1) / beta
+    return idx[_pick(k_pick, logp, ok, jnp.ones_like(ok))]
+
+
+def _search_exact(
+    model: ImplicitModel,
+    cfg: SynthesisConfig,
+    key: PRNGKeyArray,
+    probe: Float[Array, " W"],
+    beta: Array,
+    cur: Array,
+    run: Array,
+    rem: Array,
+) -> Int[Array, ""]:
+    """Exact sampler (IP Eq. 3) over all admissible examples, ``O(n·W)``."""
+    diff = model.windows.astype(probe.dtype) - probe
+    logw = -0.5 * jnp.sum(diff * diff, axis=-1) / beta
+    ex = jnp.arange(model.n_examples, dtype=jnp.int32)
+    ok = _admissible(model, cfg, ex, cur, run, rem)
+    return _pick(key, logw, ok, jnp.ones_like(ok)).astype(jnp.int32)
+
+
+def fade_weight(age: Array, blend: int) -> Array:
+    """``w(a) = 1 − S(min(a / (B + 1), 1))``, ``S(x) = 3x² − 2x³`` (``B = blend > 0``)."""
+    x = jnp.clip(age / (blend + 1.0), 0.0, 1.0)
+    return 1.0 - x * x * (3.0 - 2.0 * x)
+
+
+def synthesize_scan(
+    model: ImplicitModel,
+    key: PRNGKeyArray,
+    win0: Float[Array, "d P"],
+    n_frames: int,
+    beta: Array,
+    noise: Array,
+    sampler: str,
+    cfg: SynthesisConfig,
+) -> tuple[Float[Array, "n_frames D"], Int[Array, " n_frames"]]:
+    """The generator of the module docstring as one ``lax.scan``: poses and examples."""
+    dim = model.feature_map.dim
+    dt = win0.dtype
+    std = model.pose_std.astype(dt)[:dim]
+    succ_y = model.successors[:, :dim].astype(dt)
+    succ_v = model.successors[:, dim:].astype(dt)
+    rem = jnp.asarray(_remaining(model))
+    vel = np.zeros(dim, dtype=bool)
+    vel[np.asarray(velocity_channels(model.feature_map), dtype=np.int64)] = True
+    vel_a = jnp.asarray(vel)
+    search = _search_tree if sampler == "tree" else _search_exact
+
+    def step(carry, k):
+        win, cur, off, age, run, since = carry
+        k_s, k_n = jax.random.split(k)
+        has_next = (cur >= 0) & (rem[jnp.maximum(cur, 0)] >= 1)
+        do_search = (~has_next) | (since >= cfg.continuation)
+        probe = model.scale_windows(win)
+        idx = lax.cond(
+            do_search,
+            lambda: search(model, cfg, k_s, probe, beta, cur, run, rem).astype(jnp.int32),
+            lambda: (cur + 1).astype(jnp.int32),
+        )
+        cont = has_next & (idx == cur + 1)
+        last = win[-1, :dim]
+        if cfg.velocity:
+            start = last - (succ_y[idx] - succ_v[idx])  # current pose − example's current pose
+        else:
+            start = jnp.zeros((dim,), dt)
+        off = jnp.where(cont, off, start)
+        age = jnp.where(cont, age, 0) + 1
+        if cfg.blend > 0:
+            w = fade_weight(age.astype(dt), cfg.blend)
+            w_pose = jnp.broadcast_to(w, (dim,))
+        else:
+            w_pose = jnp.where(vel_a, 0.0, 1.0).astype(dt)
+        pose = succ_y[idx] + w_pose * off
+        pose = pose + noise * std * jax.random.normal(k_n, (dim,), dt)
+        psi = jnp.concatenate([pose, pose - last])
+        win = jnp.concatenate([win[1:], psi[None]], axis=0)
+        run = jnp.where(cont, run + 1, 1)
+        since = jnp.where(do_search, 1, since + 1)
+        return (win, idx, off, age, run, since), (pose, idx)
+
+    init = (
+        win0,
+        jnp.int32(-1),
+        jnp.zeros((dim,), dt),
+        jnp.int32(0),
+        jnp.int32(0),
+        jnp.int32(0),
+    )
+    _, (poses, idx) = lax.scan(step, init, jax.random.split(key, n_frames))
+    return poses, idx
+
+
+# counts its traces (eqx.debug.get_num_traces) so tests can show that new keys, temperatures and
+# start windows of the same shape never recompile
+synthesize_traced = eqx.debug.assert_max_traces(synthesize_scan, max_traces=None)
+synthesize_jit = eqx.filter_jit(synthesize_traced)

@@ -1,0 +1,179 @@
+"""The public synthesis entry points of the implicit model (IP §5): argument checks, the start
+window, and decoding to a :class:`Motion`; the generator itself is in ``_synthesis``."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Literal
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
+
+from ..core import MAX_GENERATED_FRAMES, check_count, check_key
+from ..motion import Motion
+from ._synthesis import SynthesisConfig, SynthLeafRule, synthesize_jit
+from ._windows import _check_beta, _check_candidates, _is_concrete, pose_vectors
+
+if TYPE_CHECKING:
+    from ._model import ImplicitModel
+
+__all__ = ["SynthLeafRule", "SynthesisConfig", "synthesize", "synthesize_poses"]
+
+
+def _config(config: SynthesisConfig | None, leaf: Any, candidates: Any, fn: str) -> SynthesisConfig:
+    if config is None:
+        config = SynthesisConfig()
+    elif not isinstance(config, SynthesisConfig):
+        raise ValueError(f"{fn}: config must be a SynthesisConfig, got {type(config).__name__}")
+    if leaf is not None:
+        if leaf not in ("uniform", "weighted", "exact"):
+            raise ValueError(f"{fn}: leaf must be 'uniform', 'weighted' or 'exact', got {leaf!r}")
+        config = SynthesisConfig(
+            velocity=config.velocity,
+            blend=config.blend,
+            leaf=leaf,
+            lookahead=config.lookahead,
+            continuation=config.continuation,
+            max_run=config.max_run,
+            candidates=config.candidates,
+        )
+    if candidates is not None:
+        _check_candidates(candidates, fn)
+        config = SynthesisConfig(
+            velocity=config.velocity,
+            blend=config.blend,
+            leaf=config.leaf,
+            lookahead=config.lookahead,
+            continuation=config.continuation,
+            max_run=config.max_run,
+            candidates=int(candidates),
+        )
+    return config
+
+
+def synthesize_poses(
+    model: ImplicitModel,
+    key: PRNGKeyArray,
+    start_window: Motion | Float[ArrayLike, "d P"],
+    n_frames: int,
+    beta: float | Float[ArrayLike, ""],
+    noise: float | Float[ArrayLike, ""] = 0.0,
+    *,
+    sampler: Literal["tree", "exact"] = "tree",
+    config: SynthesisConfig | None = None,
+    leaf: SynthLeafRule | None = None,
+    candidates: int | None = None,
+) -> tuple[Float[Array, "T D"], Int[Array, " n_frames"]]:
+    """Generate observation vectors with the implicit model (see :func:`synthesize`).
+
+    Returns:
+        ``(d + n_frames, D)`` poses (seed then generated, FeatureMap units) and the database
+        example ``(n_frames,)`` whose successor gave each generated frame.
+    """
+    check_key(key, "synthesize")
+    _check_beta(beta, "synthesize")
+    if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
+        raise ValueError(f"synthesize: n_frames must be an integer, got {n_frames!r}")
+    if n_frames < 1:
+        raise ValueError(f"synthesize: n_frames must be ≥ 1, got {n_frames}")
+    check_count(n_frames, "synthesize: n_frames", MAX_GENERATED_FRAMES)
+    if sampler not in ("tree", "exact"):
+        raise ValueError(f"synthesize: sampler must be 'tree' or 'exact', got {sampler!r}")
+    cfg = _config(config, leaf, candidates, "synthesize")
+    if _is_concrete(noise):
+        nz = np.asarray(noise)
+        if nz.shape != () or not (np.isfinite(nz) and nz >= 0):
+            raise ValueError(f"synthesize: noise must be a finite scalar ≥ 0, got {noise!r}")
+    if isinstance(start_window, Motion):
+        model.feature_map._check_motion(start_window)
+        if start_window.n_frames < model.window + 1:
+            raise ValueError(
+                f"synthesize: the start clip needs at least {model.window + 1} frames, "
+                f"got {start_window.n_frames}"
+            )
+        win = jnp.asarray(pose_vectors(model.feature_map, start_window[: model.window + 1]))
+    else:
+        win = jnp.asarray(start_window)
+        if win.shape != (model.window, model.pose_dim):
+            raise ValueError(
+                f"synthesize: start_window must be a Motion or a ({model.window}, "
+                f"{model.pose_dim}) array of pose vectors, got shape {win.shape}"
+            )
+        if _is_concrete(win) and not bool(jnp.all(jnp.isfinite(win))):
+            raise ValueError("synthesize: start_window contains NaN or inf")
+    dtype = model.windows.dtype
+    win = win.astype(dtype)
+    gen, idx = synthesize_jit(
+        model,
+        key,
+        win,
+        int(n_frames),
+        jnp.asarray(beta, dtype),
+        jnp.asarray(noise, dtype),
+        sampler,
+        cfg,
+    )
+    dim = model.feature_map.dim
+    return jnp.concatenate([win[:, :dim], gen], axis=0), idx
+
+
+def synthesize(
+    model: ImplicitModel,
+    key: PRNGKeyArray,
+    start_window: Motion | Float[ArrayLike, "d P"],
+    n_frames: int,
+    beta: float | Float[ArrayLike, ""],
+    noise: float | Float[ArrayLike, ""] = 0.0,
+    *,
+    sampler: Literal["tree", "exact"] = "tree",
+    config: SynthesisConfig | None = None,
+    leaf: SynthLeafRule | None = None,
+    candidates: int | None = None,
+    start_position: Float[ArrayLike, " 3"] | None = None,
+    start_heading: float | None = None,
+) -> Motion:
+    """Generate motion frame by frame (IP §5) and decode it to a :class:`Motion`.
+
+    Each step either continues the current database example or searches a new one for the
+    current ``d``-frame history (tree, IP Eq. 7–8, or exact, IP Eq. 3), and turns the
+    example's successor into the next pose as set by ``config`` (velocity form, blending,
+    look-ahead, continuation, run cap; ``SynthesisConfig.paper()`` is the published sampler).
+    Gaussian noise of standard deviation ``noise · pose_std`` is added to each pose; the
+    velocity half of each new pose vector is the frame difference of the generated poses, so
+    the history always describes the generated motion. One ``lax.scan``.
+
+    Args:
+        model: the implicit model.
+        key: PRNG key.
+        start_window: a clip (its frames ``0 … d`` seed the history, and its frame 1 fixes
+            the start position and heading) or a ``(d, P)`` array of pose vectors.
+        n_frames: frames to generate after the ``d`` seed frames.
+        beta: sampling temperature ``> 0`` (same meaning for both samplers, see ``_model``).
+        noise: innovation scale ``≥ 0``.
+        sampler: ``"tree"`` (IP Eq. 7–8) or ``"exact"`` (IP Eq. 3).
+        config: synthesis options (default ``SynthesisConfig()``).
+        leaf, candidates: override ``config.leaf`` / ``config.candidates``.
+        start_position, start_heading: root position and yaw of the first output frame
+            (default: from ``start_window`` if it is a clip, else the origin and 0).
+
+    Returns:
+        a clip of ``d + n_frames`` frames: the seed poses followed by the generated ones.
+    """
+    poses, _ = synthesize_poses(
+        model,
+        key,
+        start_window,
+        n_frames,
+        beta,
+        noise,
+        sampler=sampler,
+        config=config,
+        leaf=leaf,
+        candidates=candidates,
+    )
+    sp, sh = start_position, start_heading
+    if isinstance(start_window, Motion):
+        p0, h0 = model.feature_map.start_of(start_window[1:])
+        sp = p0 if sp is None else sp
+        sh = h0 if sh is None else sh
+    return model.feature_map.decode(poses, sp, sh)

@@ -1,0 +1,306 @@
+"""Implicit-model synthesis extensions (issue 18): velocity form, blending, continuation,
+look-ahead, run cap, leaf rules, body weighting of the database and the choice of ``b`` by
+explained variance — each against a NumPy re-derivation or an exhaustive search."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+import mtex_jax as mj
+from mtex_jax.implicit import ImplicitModel, SynthesisConfig, fade_weight, pose_vectors
+from mtex_jax.implicit._synthesis import synthesize_traced
+
+WINDOW = 6
+N = 48
+
+
+@pytest.fixture(scope="module")
+def clips(cmu_motions):
+    m = [c.resample(30.0) for c in cmu_motions[:3]]
+    return [c[i : i + 128] for c in m for i in range(0, c.n_frames - 127, 128)]
+
+
+@pytest.fixture(scope="module")
+def model(clips) -> ImplicitModel:
+    return mj.implicit.learn(clips[1:], WINDOW)
+
+
+def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.ndarray:
+    """The generator of ``_synthesis``'s docstring in NumPy, for given example indices."""
+    dim = model.feature_map.dim
+    succ = np.asarray(model.successors)
+    y_next, dy = succ[:, :dim], succ[:, dim:]
+    clip = np.asarray(model.clip_index)
+    vel = np.zeros(dim, bool)
+    vel[list(mj.implicit.velocity_channels(model.feature_map))] = True
+    prev, cur, off, age, out = seed_y[-1], -1, np.zeros(dim), 0, []
+    for i in idx:
+        cont = cur >= 0 and i == cur + 1 and i < len(clip) and clip[i] == clip[cur]
+        if not cont:
+            off = prev - (y_next[i] - dy[i]) if cfg.velocity else np.zeros(dim)
+            age = 0
+        age += 1
+        if cfg.blend > 0:
+            x = min(age / (cfg.blend + 1), 1.0)
+            w = np.full(dim, 1 - (3 * x * x - 2 * x**3))
+        else:
+            w = np.where(vel, 0.0, 1.0)
+        prev = y_next[i] + w * off
+        out.append(prev)
+        cur = i
+    return np.asarray(out)
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        SynthesisConfig(),
+        SynthesisConfig(blend=0, continuation=1, max_run=0, candidates=1, leaf="weighted"),
+        SynthesisConfig(blend=7, continuation=3, lookahead=3, leaf="uniform", candidates=4),
+        SynthesisConfig.paper(),
+    ],
+)
+@pytest.mark.parametrize("sampler", ["tree", "exact"])
+def test_poses_follow_the_numpy_rederivation(model, clips, cfg, sampler):
+    y, idx = model.synthesize_poses(
+        jax.random.PRNGKey(3), clips[0], N, 1.0, sampler=sampler, config=cfg
+    )
+    y, idx = np.asarray(y), np.asarray(idx)
+    ref = _reference(model, y[:WINDOW], idx, cfg)
+    np.testing.assert_allclose(y[WINDOW:], ref, atol=1e-9)
+
+
+def test_velocity_form_applies_the_examples_change_of_pose(model, clips):
+    """Pure velocity form (blend 0): every generated frame moves by the example's own change
+    of pose, ŷ_{t+1} − ŷ_t = Δy(e) (pose channels), even across transitions."""
+    cfg = SynthesisConfig(blend=0, continuation=1, max_run=0)
+    y, idx = model.synthesize_poses(jax.random.PRNGKey(5), clips[0], N, 1.0, config=cfg)
+    y, idx = np.asarray(y), np.asarray(idx)
+    dim = model.feature_map.dim
+    pose = np.ones(dim, bool)
+    pose[list(mj.implicit.velocity_channels(model.feature_map))] = False
+    step = np.diff(y[WINDOW - 1 :], axis=0)
+    dy = np.asarray(model.successors)[idx, dim:]
+    np.testing.assert_allclose(step[:, pose], dy[:, pose], atol=1e-9)
+    assert len(set(idx.tolist())) > 5  # transitions happened
+
+
+def test_blending_rejoins_the_example_after_blend_frames(model, clips):
+    """With blend B, B + 1 frames after a transition the pose is the example's own pose."""
+    b = 3
+    cfg = SynthesisConfig(blend=b, continuation=8, lookahead=8, max_run=0)
+    y, idx = model.synthesize_poses(jax.random.PRNGKey(2), clips[0], N, 1.0, config=cfg)
+    y, idx = np.asarray(y)[WINDOW:], np.asarray(idx)
+    dim = model.feature_map.dim
+    succ_y = np.asarray(model.successors)[:, :dim]
+    for t in range(0, N - b - 1, 8):  # searches at 0, 8, 16, …; 8 frames played from each
+        np.testing.assert_allclose(y[t + b : t + 8], succ_y[idx[t + b : t + 8]], atol=1e-9)
+
+
+def test_continuation_lookahead_and_run_cap(model, clips):
+    """continuation c: a search every c frames, examples continue in between; look-ahead L:
+    every searched example has ≥ L further frames in its clip; max_run caps verbatim runs."""
+    c, la, cap = 4, 6, 8
+    cfg = SynthesisConfig(continuation=c, lookahead=la, max_run=cap)
+    _, idx = model.synthesize_poses(jax.random.PRNGKey(1), clips[0], 96, 1.0, config=cfg)
+    idx = np.asarray(idx)
+    clip = np.asarray(model.clip_index)
+    remaining = np.array([np.sum(clip[i + 1 :] == clip[i]) for i in range(len(clip))])
+    for t in range(1, len(idx)):
+        if t % c:
+            assert idx[t] == idx[t - 1] + 1
+    assert np.all(remaining[idx[::c]] >= la)
+    run, longest = 1, 1
+    for t in range(1, len(idx)):
+        run = run + 1 if idx[t] == idx[t - 1] + 1 and clip[idx[t]] == clip[idx[t - 1]] else 1
+        longest = max(longest, run)
+    assert longest <= cap
+
+
+@pytest.mark.parametrize("leaf", ["uniform", "weighted", "exact"])
+def test_tree_at_tiny_beta_agrees_with_exhaustive_search(model, clips, leaf):
+    """From a database clip at β → 0 the exhaustive nearest window of each history is the
+    clip's own next window; the tree (own leaf) with the exact leaf rule finds it too, so
+    paper-style synthesis replays the clip. Uniform/weighted leaves may pick another member
+    of the leaf, which must then share the sign code of the exhaustive answer."""
+    cfg = SynthesisConfig(
+        velocity=False, blend=0, leaf=leaf, lookahead=0, continuation=1, max_run=0, candidates=1
+    )
+    clip = clips[2]
+    _, it = model.synthesize_poses(jax.random.PRNGKey(0), clip, 30, 1e-9, config=cfg)
+    _, ie = model.synthesize_poses(
+        jax.random.PRNGKey(0), clip, 30, 1e-9, config=cfg, sampler="exact"
+    )
+    it, ie = np.asarray(it), np.asarray(ie)
+    w = np.asarray(model.windows)
+    probes = np.asarray(model.windows_of(clip))[:30]
+    brute = np.argmin(((probes[:, None] - w[None]) ** 2).sum(-1), axis=1)
+    np.testing.assert_array_equal(ie[:1], brute[:1])
+    first = model.clip_sizes[0]
+    np.testing.assert_array_equal(ie, first + np.arange(30))
+    codes = np.asarray(model.codes)
+    if leaf == "exact":
+        np.testing.assert_array_equal(it, ie)
+    else:
+        assert codes[it[0]] == codes[ie[0]]
+
+
+def test_no_recompile_for_new_keys_betas_and_starts(model, clips):
+    cfg = SynthesisConfig()
+    model.synthesize_poses(jax.random.PRNGKey(0), clips[0], 20, 1.0, config=cfg)
+    n0 = eqx.debug.get_num_traces(synthesize_traced)
+    for k in range(3):
+        model.synthesize_poses(jax.random.PRNGKey(k), clips[k + 1], 20, 0.5 + k, config=cfg)
+    assert eqx.debug.get_num_traces(synthesize_traced) == n0
+
+
+def test_float32_smoke(clips):
+    c32 = [
+        mj.Motion(
+            c.skeleton,
+            c.fps,
+            np.asarray(c.root_positions, np.float32),
+            np.asarray(c.rotations, np.float32),
+        )
+        for c in clips[:3]
+    ]
+    m = mj.implicit.learn(c32, WINDOW)
+    assert m.windows.dtype == np.float32
+    out = m.synthesize(jax.random.PRNGKey(0), c32[0], 30, 1.0)
+    assert np.asarray(out.rotations).dtype == np.float32
+    assert np.all(np.isfinite(np.asarray(out.rotations)))
+
+
+# --------------------------------------------------------------------------- database
+def test_joint_reach_against_path_enumeration(model):
+    sk = model.feature_map.skeleton
+    off = np.linalg.norm(np.asarray(sk.offsets), axis=1)
+    children = {
+        j: [c for c in range(sk.n_joints) if sk.parents[c] == j] for j in range(sk.n_joints)
+    }
+    sites = {j: [np.linalg.norm(o) for p, o in sk.end_sites if p == j] for j in range(sk.n_joints)}
+
+    def far(j):
+        best = max(sites[j], default=0.0)
+        return max([best] + [off[c] + far(c) for c in children[j]])
+
+    np.testing.assert_allclose(
+        mj.implicit.joint_reach(model.feature_map),
+        np.array([far(j) for j in range(sk.n_joints)]),
+        atol=1e-12,
+    )
+
+
+def test_body_weighting_whitens_pose_and_velocity_groups(model, clips):
+    """γ_c · m_c is one number per group and the mean variance of ψ/γ over a group is 1."""
+    psi = np.concatenate([pose_vectors(model.feature_map, c) for c in clips[1:]])
+    gamma = np.asarray(model.gamma)
+    imp = np.tile(mj.implicit.channel_importance(model.feature_map), 2)
+    p = psi.shape[1]
+    for half in (slice(0, p // 2), slice(p // 2, p)):
+        g = gamma[half] * imp[half]
+        np.testing.assert_allclose(g, g[0], rtol=1e-10)
+        np.testing.assert_allclose(
+            np.mean((psi[:, half] / gamma[half]).var(axis=0)), 1.0, rtol=1e-8
+        )
+    assert model.weighting == "body"
+
+
+def test_min_explained_picks_the_fewest_components(model, clips):
+    target = 0.6
+    m = mj.implicit.learn(clips[1:], WINDOW, min_explained=target, feature_map=model.feature_map)
+    w = np.asarray(m.windows)
+    s = np.linalg.svd(w - w.mean(0), compute_uv=False)
+    frac = np.cumsum(s**2) / np.sum(s**2)
+    b = m.n_components
+    assert frac[b - 1] >= target - 1e-9 > frac[b - 2]
+    np.testing.assert_allclose(m.explained_variance, frac[b - 1], rtol=1e-8)
+
+
+@settings(deadline=None, max_examples=30)
+@given(st.integers(1, 20), st.integers(0, 40))
+def test_fade_weight_is_a_smooth_step(blend, age):
+    w = float(fade_weight(jnp.asarray(age, jnp.float64), blend))
+    x = min(age / (blend + 1), 1.0)
+    assert w == pytest.approx(1 - (3 * x * x - 2 * x**3), abs=1e-12)
+    assert 0.0 <= w <= 1.0
+    if age >= blend + 1:
+        assert w == 0.0
+
+
+def test_bad_options_raise_clear_errors(model, clips):
+    key = jax.random.PRNGKey(0)
+    bad: tuple[tuple[dict[str, Any], str], ...] = (
+        ({"blend": -1}, "blend"),
+        ({"continuation": 0}, "continuation"),
+        ({"lookahead": 1.5}, "lookahead"),
+        ({"max_run": -2}, "max_run"),
+        ({"candidates": 0}, "candidates"),
+        ({"leaf": "nearest"}, "leaf"),
+        ({"velocity": 1}, "velocity"),
+        ({"velocity": False, "blend": 3}, "blend"),
+    )
+    for kw, name in bad:
+        with pytest.raises(ValueError, match=name):
+            SynthesisConfig(**kw)
+    with pytest.raises(ValueError, match="config"):
+        model.synthesize(key, clips[0], 5, 1.0, config={"blend": 2})  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="leaf"):
+        model.synthesize(key, clips[0], 5, 1.0, leaf="nearest")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="weighting"):
+        mj.implicit.learn(clips[1:3], WINDOW, weighting="joint")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="min_explained"):
+        mj.implicit.learn(clips[1:3], WINDOW, min_explained=1.5)
+    with pytest.raises(ValueError, match="not both"):
+        mj.implicit.learn(clips[1:3], WINDOW, min_explained=0.5, n_components=4)
+
+
+# --------------------------------------------------------------------------- CLI
+def test_cli_synthesis_options(tmp_path, capsys):
+    from mtex_jax.cli import main
+
+    out = tmp_path / "s.bvh"
+    base = [
+        "implicit-synth",
+        "example:walk",
+        "example:run",
+        "-o",
+        str(out),
+        "--frames",
+        "20",
+        "--window",
+        "5",
+    ]
+    opts = [
+        "--paper",
+        "--leaf",
+        "exact",
+        "--continuation",
+        "3",
+        "--weighting",
+        "channel",
+        "--min-explained",
+        "0.8",
+        "--sampler",
+        "exact",
+    ]
+    assert main(base + opts) == 0
+    assert "wrote" in capsys.readouterr().out
+    assert mj.read_bvh(out).n_frames == 25
+    for bad, word in (
+        (["--blend", "-1"], "blend"),
+        (["--continuation", "0"], "continuation"),
+        (["--min-explained", "2"], "min-explained"),
+        (["--paper", "--blend", "3"], "blend"),
+        (["--max-run", "-3"], "max-run"),
+    ):
+        assert main(base + bad) == 2
+        err = capsys.readouterr().err
+        assert word in err and err.count("\n") == 1, (bad, err)
