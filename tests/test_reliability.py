@@ -415,6 +415,28 @@ def test_every_subcommand_bad_arguments_one_line_exit_2(small_texture, tmp_path,
             [str(model), "-o", o, "--frames", "1000000000"],
             [str(text), "-o", o],
             [str(model), "-o", o, "--gif", "x.png"],
+            [str(model), "-o", o, "--clean"],  # no contact model beside the model file
+            [str(model), "-o", o, "--contacts", "c.npz"],  # --contacts without --clean
+        ],
+        "edit": [
+            [str(model)],
+            [str(model), "example:dance_a", "--joint", "nope", "--frame", "1", "--at", "0,0,0"],
+            [
+                str(model),
+                "example:dance_a",
+                *("--joint", "chest", "--frame", "1", "--at", "1,2"),
+                "-o",
+                o,
+            ],
+            [str(model), "example:dance_a", *("--joint", "chest", "--frame", "99999"), "-o", o],
+            [str(text), "example:dance_a", *("--joint", "chest", "--frame", "1", "--at", "0,0,0")],
+        ],
+        "contacts": [
+            [],
+            ["example:dance_a"],
+            ["example:dance_a", "-o", "x.txt"],
+            ["missing.bvh", "-o", str(tmp_path / "c.npz")],
+            ["example:dance_a", "-o", str(tmp_path / "c.npz"), "--fps", "-1"],
         ],
         "choreograph": [
             [str(model), "--start", "example:dance_a", "--end", "example:dance_a:2", "-o", o],

@@ -8,12 +8,14 @@ concern, each with its own API:
 - :mod:`mtex_jax.io`: BVH, DeepMimic, the embedded clips, the model-file format;
 - :mod:`mtex_jax.texture`: Motion Texture (textons, learning, segmentation, synthesis);
 - :mod:`mtex_jax.implicit`: the implicit model and the particle-filter tracker;
+- :mod:`mtex_jax.edit`: pose edits and cleaning (foot contacts, the floor) by optimisation;
 - :mod:`mtex_jax.viz`: rendering and plots;
 - :mod:`mtex_jax.cli`: the ``mtex`` command.
 """
 
 from importlib.metadata import PackageNotFoundError, version
 
+from .edit import synthesize as synthesize
 from .implicit import ImplicitModel as ImplicitModel, track as track
 from .io import (
     example_names as example_names,
@@ -36,7 +38,6 @@ from .texture import (
     choreograph as choreograph,
     learn as learn,
     load_texture as load_texture,
-    synthesize as synthesize,
 )
 from .viz import (
     plot_timeline as plot_timeline,

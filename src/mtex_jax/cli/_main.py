@@ -24,6 +24,7 @@ _COMMANDS = (
     "_texture_cmds",  # learn, segment, synth, choreograph
     "_implicit",  # implicit-synth, track
     "_evaluate",  # evaluate
+    "_edit",  # edit, contacts
 )
 
 

@@ -125,6 +125,7 @@ def _write_outputs(syn, out: str, gif: str | None, title: str) -> None:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
+    import equinox as eqx
     import jax
 
     from ..texture import synthesize
@@ -138,11 +139,38 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         raise ValueError(f"--frames must be >= 4, got {n}")
     if n > MAX_GENERATED_FRAMES:
         raise ValueError(f"--frames {n:,} exceeds the limit of {MAX_GENERATED_FRAMES:,}")
+    contacts = None
+    if args.clean:
+        from ..edit import load_contacts
+        from ._edit import contacts_path
+
+        cpath = args.contacts or str(contacts_path(args.model))
+        if not Path(cpath).exists():
+            raise ValueError(
+                f"--clean needs the training clips' contact model: {cpath} does not exist "
+                "(make it with 'mtex contacts CLIPS... -o FILE' and pass --contacts FILE)"
+            )
+        contacts = load_contacts(cpath)
+    elif args.contacts:
+        raise ValueError("--contacts is only used with --clean")
     t0 = time.perf_counter()
     syn = synthesize(jax.random.key(args.seed), tex, n_frames=n)
     print(
         f"synthesised {n} frames from {tex.n_textons} textons in {time.perf_counter() - t0:.1f} s"
     )
+    if contacts is not None:
+        from ..edit import clean
+
+        t0 = time.perf_counter()
+        res = clean(tex, syn, contacts, loglik=False)
+        syn = eqx.tree_at(lambda s: (s.Y, s.motion), syn, (res.Y, res.motion))
+        print(
+            f"cleaned in {time.perf_counter() - t0:.1f} s: foot skating median "
+            f"{res.skating_before.median:.2f} -> {res.skating_after.median:.2f} m/s, deepest "
+            f"foot below the floor {100 * res.penetration_before.max_depth:.1f} -> "
+            f"{100 * res.penetration_after.max_depth:.1f} cm"
+            + ("" if bool(res.edit.converged) else " (solver did NOT converge)")
+        )
     _write_outputs(syn, args.output, args.gif, f"mtex synth (seed {args.seed})")
     return 0
 
@@ -258,6 +286,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--frames", type=int, default=None, help="frames to make (default 10 s)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument("--gif", default=None, help="also render an animated GIF here")
+    s.add_argument(
+        "--clean",
+        action="store_true",
+        help="remove foot skating and floor penetration (mtex_jax.edit.clean)",
+    )
+    s.add_argument(
+        "--contacts",
+        default=None,
+        help="contact model for --clean (default MODEL.contacts.npz, see 'mtex contacts')",
+    )
     s.set_defaults(func=_cmd_synth)
 
     s = sub.add_parser(

@@ -1,0 +1,268 @@
+"""Benchmark: cleaning and editing synthesised salsa (issue 17).
+
+On the quality benchmark's fixed split (``../shared/data/README.md``; loaded and judged exactly
+as ``bench_quality.py`` does: the README's ``LearnConfig`` on the 10 training clips at 60 Hz,
+``MotionJudge(train, held, fps)`` against the 4 held-out clips), in one run:
+
+1. **Clean**: ``n`` constrained syntheses of 10 s (sampled noise), judged before and after
+   :func:`mtex_jax.edit.clean` beside the real held-out clips (foot skating median/p95 over low
+   steps, penetration below the training floor, acceleration/jerk W1 distances and their ratio
+   to the real-vs-real floor), and the texture's log-likelihood per frame lost by cleaning
+   (forward algorithm).
+2. **Edit**: the right hand moved at frame m of each synthesis (10 cm forward, 5 cm up):
+   error at the target and the decay curve (largest joint displacement against the distance
+   in time from the edit).
+3. **Time**: cleaning 10 s at 60 Hz (compile separately, then the median of repeats with
+   ``block_until_ready``); one edit against a ``vmap`` batch of 16 (per motion).
+
+Run: ``.venv/bin/python benchmarks/bench_edit.py`` (``--quick`` for a smoke run). Writes
+``benchmarks/results/edit.md`` and ``edit.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # the benchmark's choice; the library never does this
+
+import numpy as np
+
+import mtex_jax as mj
+from mtex_jax import edit as E, metrics
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_quality import FPS, HELD, TRAIN, load  # the same split, clips and frame rate
+
+REPO = Path(__file__).resolve().parents[1]
+OUT = REPO / "benchmarks" / "results"
+SECONDS = 10.0
+DECAY_S = (0.0, 0.05, 0.1, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+KEYS = ("acceleration_ratio", "jerk_ratio", "skating_median", "skating_p95")
+KEYS2 = ("penetration_max", "penetration_share", "acceleration_w1", "jerk_w1")
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+def timed(fn) -> tuple[float, Any]:
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    return time.perf_counter() - t0, out
+
+
+def hand_edit(tex, syn, m: int, offset) -> tuple[Any, np.ndarray, np.ndarray]:
+    fm = tex.feature_map
+    j = fm.skeleton.index("rHand")
+    sp, sh = fm.start_of(syn.motion)
+    P0 = np.asarray(fm.joint_positions(syn.Y, sp, sh))
+    target = P0[m, j] + np.asarray(offset)
+    cons = E.make_constraints(fm.skeleton, syn.n_frames, fm.dim, positions=[("rHand", m, target)])
+    return cons, P0, target
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="a smoke run (2 syntheses, 1 repeat)")
+    ap.add_argument("--n", type=int, default=4, help="syntheses to clean and edit")
+    args = ap.parse_args()
+    n_syn, repeats = (2, 1) if args.quick else (args.n, 3)
+    res: dict[str, Any] = dict(
+        machine=dict(
+            platform=platform.platform(),
+            cpus=os.cpu_count(),
+            load_start=os.getloadavg(),
+            jax=jax.__version__,
+            dtype="float64",
+        ),
+        split=dict(train=TRAIN, held_out=HELD),
+        seconds=SECONDS,
+        fps=FPS,
+    )
+    log("reading clips")
+    train = [m.resample(FPS) for m in load(TRAIN)]
+    held = [m.resample(FPS) for m in load(HELD)]
+    cfg = mj.LearnConfig(tmin=60, tmax=180, state_dim=12, fps=FPS, min_segments=3)
+    log("learning the motion texture (README settings)")
+    t_learn, tex = timed(lambda: mj.learn(train, cfg))
+    res["texture"] = dict(learn_s=t_learn, textons=tex.n_textons, obs_dim=tex.obs_dim)
+    judge = metrics.MotionJudge(train, held, fps=FPS)
+    contacts = judge.contacts  # fitted on the training clips only
+    res["contacts"] = dict(
+        feet=list(contacts.foot_names),
+        height_threshold=contacts.height_threshold.tolist(),
+        speed_threshold=contacts.speed_threshold.tolist(),
+        floor=contacts.floor,
+    )
+    n = int(SECONDS * FPS)
+    keys = jax.random.split(jax.random.key(2026), n_syn)
+    log(f"synthesising {n_syn} x {SECONDS:.0f} s")
+    syns = [mj.synthesize(k, tex, n_frames=n) for k in keys]
+
+    # ------------------------------------------------------------------ clean
+    log("cleaning (the first call compiles)")
+    t_first, _ = timed(lambda: E.clean(tex, syns[0], contacts, loglik=False))
+    cleaned, times = [], []
+    for i, s in enumerate(syns):
+        t, c = timed(lambda s=s: E.clean(tex, s, contacts))
+        cleaned.append(c)
+        times.append(t)
+        log(f"  synthesis {i}: {t:.1f} s; {c.edit.report().splitlines()[0]}")
+    real = judge.real_rows()["real (held out)"]
+    before = judge.judge([s.motion for s in syns], copy=False)
+    after = judge.judge([c.motion for c in cleaned], copy=False)
+    res["clean"] = dict(
+        real={k: real[k] for k in KEYS + KEYS2},
+        before={k: before[k] for k in KEYS + KEYS2},
+        after={k: after[k] for k in KEYS + KEYS2},
+        loglik_before=[c.loglik_before for c in cleaned],
+        loglik_after=[c.loglik_after for c in cleaned],
+        loglik_lost_per_frame=float(np.mean([c.loglik_lost for c in cleaned])),
+        converged=[bool(c.edit.converged) for c in cleaned],
+        steps=[int(c.edit.steps) for c in cleaned],
+        used_bfgs=[bool(c.edit.used_bfgs) for c in cleaned],
+        plant_slide=[float(c.edit.plant_slide) for c in cleaned],
+        contact_share=[float(c.labels.mean()) for c in cleaned],
+    )
+
+    # ------------------------------------------------------------------ edit
+    log("editing: the right hand 10 cm forward and 5 cm up at the middle frame")
+    m = n // 2
+    errors, decay = [], []
+    for s in syns:
+        cons, P0, target = hand_edit(tex, s, m, [0.10, 0.05, 0.0])
+        r = E.edit(tex, s, cons)
+        fm = tex.feature_map
+        P = np.asarray(fm.joint_positions(r.Y, *fm.start_of(s.motion)))
+        errors.append(float(np.linalg.norm(P[m, fm.skeleton.index("rHand")] - target)))
+        moved = np.linalg.norm(P - P0, axis=-1).max(axis=1)
+        dist = np.abs(np.arange(n) - m) / FPS
+        decay.append([float(moved[dist >= d].max()) for d in DECAY_S])
+    res["edit"] = dict(
+        frame=m,
+        offset_m=[0.10, 0.05, 0.0],
+        error_m=errors,
+        decay_s=list(DECAY_S),
+        decay_max_m=np.max(np.array(decay), axis=0).tolist(),
+    )
+
+    # ------------------------------------------------------------------ time
+    log("timing: clean of 10 s, one edit, a vmap batch of 16 edits")
+    clean_t = [
+        timed(lambda: E.clean(tex, syns[0], contacts, loglik=False))[0] for _ in range(repeats)
+    ]
+    cons, _, _ = hand_edit(tex, syns[0], m, [0.10, 0.05, 0.0])
+    t_edit_first, _ = timed(lambda: E.edit(tex, syns[0], cons).Y)
+    edit_t = [timed(lambda: E.edit(tex, syns[0], cons).Y)[0] for _ in range(repeats)]
+    batch = [syns[i % n_syn] for i in range(16)]
+    bcons = [hand_edit(tex, s, m - 5 * i, [0.10, 0.05, 0.0])[0] for i, s in enumerate(batch)]
+    t_batch_first, _ = timed(lambda: E.edit_many(tex, batch, bcons).Y)
+    batch_t = [timed(lambda: E.edit_many(tex, batch, bcons).Y)[0] for _ in range(repeats)]
+    res["time"] = dict(
+        clean_first_call_s=t_first,
+        clean_s_median=float(np.median(clean_t)),
+        clean_s_all=clean_t,
+        clean_per_synthesis_s=times,
+        edit_first_call_s=t_edit_first,
+        edit_s_median=float(np.median(edit_t)),
+        batch16_first_call_s=t_batch_first,
+        batch16_s_median=float(np.median(batch_t)),
+        batch16_per_motion_s=float(np.median(batch_t)) / 16,
+        frames=n,
+        obs_dim=tex.obs_dim,
+        repeats=repeats,
+    )
+    res["machine"]["load_end"] = os.getloadavg()
+    OUT.mkdir(parents=True, exist_ok=True)
+    name = "edit_quick" if args.quick else "edit"
+    from mtex_jax.core import atomic_write
+
+    with atomic_write(OUT / f"{name}.json", "w") as f:
+        json.dump(res, f, indent=1)
+    with atomic_write(OUT / f"{name}.md", "w") as f:
+        f.write(report(res))
+    log(f"wrote {OUT / name}.md")
+
+
+def report(r: dict[str, Any]) -> str:
+    c, t, e = r["clean"], r["time"], r["edit"]
+    fmt = lambda v: "—" if v is None else f"{v:.3g}"
+    lines = [
+        "# Editing and cleaning (issue 17)",
+        "",
+        f"`benchmarks/bench_edit.py`, one run; {r['machine']['platform']}, "
+        f"{r['machine']['cpus']} CPUs, load average {r['machine']['load_start'][0]:.1f} at the "
+        f"start and {r['machine']['load_end'][0]:.1f} at the end; float64. Texture: the "
+        f"README's settings on the 10 training clips at {r['fps']:g} Hz "
+        f"({r['texture']['textons']} textons, D = {r['texture']['obs_dim']}); "
+        f"{len(c['converged'])} syntheses of {r['seconds']:g} s; judged by `MotionJudge` "
+        "against the 4 held-out clips; contacts fitted on the training clips "
+        f"(feet {', '.join(r['contacts']['feet'])}, floor {r['contacts']['floor']:.4f} m).",
+        "",
+        "## Clean",
+        "",
+        "| set | acc ratio | jerk ratio | skating median (m/s) | skating p95 (m/s) | "
+        "deepest below floor (m) | frames below |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for name, row in (
+        ("real, held out", c["real"]),
+        ("raw synthesis", c["before"]),
+        ("cleaned", c["after"]),
+    ):
+        lines.append(
+            f"| {name} | {fmt(row['acceleration_ratio'])} | {fmt(row['jerk_ratio'])} | "
+            f"{fmt(row['skating_median'])} | {fmt(row['skating_p95'])} | "
+            f"{fmt(row['penetration_max'])} | {fmt(row['penetration_share'])} |"
+        )
+    sk_m = c["after"]["skating_median"] / c["real"]["skating_median"]
+    sk_p = c["after"]["skating_p95"] / c["real"]["skating_p95"]
+    lines += [
+        "",
+        f"Skating after cleaning / real: median {sk_m:.2f}x, p95 {sk_p:.2f}x (target <= 1.5x). "
+        f"Log-likelihood per frame (forward algorithm): before "
+        f"{np.mean(c['loglik_before']):.2f}, after {np.mean(c['loglik_after']):.2f}; lost "
+        f"{c['loglik_lost_per_frame']:.3f} nats per frame. Solver: converged "
+        f"{sum(c['converged'])} of {len(c['converged'])} (steps {c['steps']}, L-BFGS fallback "
+        f"used {sum(c['used_bfgs'])} times); largest planted-foot speed after "
+        f"{max(c['plant_slide']):.3g} m/s; share of (step, foot) planted "
+        f"{np.mean(c['contact_share']):.2f}.",
+        "",
+        f"## Edit: right hand +10 cm forward, +5 cm up at frame {e['frame']}",
+        "",
+        f"Error at the target: {', '.join(f'{1e3 * v:.3f} mm' for v in e['error_m'])}.",
+        "",
+        "| at least this far from the edit (s) | "
+        + " | ".join(f"{d:g}" for d in e["decay_s"])
+        + " |",
+        "| --- | " + " | ".join("---:" for _ in e["decay_s"]) + " |",
+        "| largest joint displacement (mm) | "
+        + " | ".join(f"{1e3 * v:.3g}" for v in e["decay_max_m"])
+        + " |",
+        "",
+        "## Time",
+        "",
+        f"Cleaning {r['seconds']:g} s at {r['fps']:g} Hz ({t['frames']} frames, D = "
+        f"{t['obs_dim']}): first call {t['clean_first_call_s']:.1f} s (compiles), then median "
+        f"{t['clean_s_median']:.2f} s over {t['repeats']} repeats (target <= 5 s); per "
+        f"synthesis {', '.join(f'{v:.1f}' for v in t['clean_per_synthesis_s'])} s (with the "
+        "two likelihood passes). One hand edit: first call "
+        f"{t['edit_first_call_s']:.1f} s, then {t['edit_s_median']:.2f} s; a vmap batch of 16 "
+        f"edits: first call {t['batch16_first_call_s']:.1f} s, then "
+        f"{t['batch16_s_median']:.2f} s = {t['batch16_per_motion_s']:.2f} s per motion.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

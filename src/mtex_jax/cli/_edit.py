@@ -1,0 +1,115 @@
+"""``mtex edit`` (a joint at a point at a frame, the texture's dynamics otherwise) and
+``mtex contacts`` (fit the training clips' foot-contact model that ``synth --clean`` uses)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+from ._validators import SOURCE_HELP, read_source
+
+__all__ = ["contacts_path", "register"]
+
+
+def contacts_path(model: str) -> Path:
+    """The default contact-model file beside a model file: ``NAME.contacts.npz``."""
+    p = Path(model)
+    return p.with_name(p.stem + ".contacts.npz")
+
+
+def _point(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    try:
+        xyz = tuple(float(p) for p in parts)
+    except ValueError:
+        xyz = ()
+    if len(xyz) != 3 or not all(math.isfinite(v) for v in xyz):
+        raise ValueError(f"--at must be three finite numbers X,Y,Z in metres, got {text!r}")
+    return xyz  # type: ignore[return-value]
+
+
+def _cmd_edit(args: argparse.Namespace) -> int:
+    from ..edit import edit, make_constraints
+    from ..io import write_bvh
+    from ..texture import load_texture
+
+    if not str(args.output).lower().endswith(".bvh"):
+        raise ValueError(f"-o/--output must be a .bvh file, got {args.output!r}")
+    at = _point(args.at)
+    tex = load_texture(args.model)
+    fm = tex.feature_map
+    if fm is None:
+        raise ValueError(f"{args.model} was learned from arrays, not motions; it cannot edit")
+    if args.joint not in fm.skeleton.names:
+        raise ValueError(f"--joint {args.joint!r} is not a joint of the model's skeleton")
+    m = read_source(args.clip)
+    if m.fps != fm.fps:
+        m = m.resample(fm.fps)
+    if not 0 <= args.frame < m.n_frames:
+        raise ValueError(f"--frame {args.frame} outside 0..{m.n_frames - 1} (at {fm.fps:g} Hz)")
+    if m.n_frames < 3:
+        raise ValueError(f"{args.clip} has {m.n_frames} frames; editing needs at least 3")
+    t0 = time.perf_counter()
+    cons = make_constraints(
+        fm.skeleton, m.n_frames, fm.dim, positions=[(args.joint, args.frame, at)]
+    )
+    res = edit(tex, m, cons)
+    sp, sh = fm.start_of(m)
+    write_bvh(args.output, fm.decode(res.Y, sp, sh))
+    print(res.report())
+    print(f"edited in {time.perf_counter() - t0:.1f} s; wrote {args.output}")
+    return 0 if res.met else 1
+
+
+def _cmd_contacts(args: argparse.Namespace) -> int:
+    from ..edit import save_contacts
+    from ..metrics import fit_contacts
+
+    if not str(args.output).lower().endswith(".npz"):
+        raise ValueError(f"-o/--output must be a .npz file, got {args.output!r}")
+    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
+        raise ValueError(f"--fps must be positive, got {args.fps}")
+    motions = [read_source(c) for c in args.clips]
+    fps = args.fps if args.fps is not None else motions[0].fps
+    motions = [mm if mm.fps == fps else mm.resample(fps) for mm in motions]
+    cm = fit_contacts(motions, fps=fps)
+    save_contacts(args.output, cm)
+    print(
+        f"feet {', '.join(cm.foot_names)}; height thresholds "
+        f"{', '.join(f'{h:.3f}' for h in cm.height_threshold)} m; speed thresholds "
+        f"{', '.join(f'{s:.2f}' for s in cm.speed_threshold)} m/s; floor {cm.floor:.3f} m"
+    )
+    print(f"wrote {args.output}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    s = sub.add_parser(
+        "edit",
+        help="move a joint to a point at a frame, the texture's dynamics otherwise",
+        description="Edit a clip by optimisation through the texture's decode and forward "
+        "kinematics (Levenberg-Marquardt): JOINT at X,Y,Z (metres, world) at FRAME, every "
+        "other frame as likely under the textons as before. Exit status 1 if the target "
+        "could not be met (the report says by how much).",
+    )
+    s.add_argument("model", help="a model file written by 'mtex learn' or 'mtex demo'")
+    s.add_argument("clip", help=SOURCE_HELP)
+    s.add_argument("--joint", required=True, help="joint name, e.g. rHand")
+    s.add_argument("--frame", required=True, type=int, help="frame (at the model's rate)")
+    s.add_argument("--at", required=True, help="target world position X,Y,Z in metres")
+    s.add_argument("-o", "--output", required=True, help="BVH file to write")
+    s.set_defaults(func=_cmd_edit)
+
+    s = sub.add_parser(
+        "contacts",
+        help="fit the foot-contact model of training clips (for 'synth --clean')",
+        description="Per-foot height and speed thresholds and the floor, from training clips "
+        "(mtex_jax.metrics.fit_contacts). Save it as MODEL.contacts.npz beside a model file "
+        "and 'mtex synth --clean' finds it.",
+    )
+    s.add_argument("clips", nargs="+", help=SOURCE_HELP)
+    s.add_argument("--fps", type=float, default=None, help="frame rate (default the first clip's)")
+    s.add_argument("-o", "--output", required=True, help=".npz file to write")
+    s.set_defaults(func=_cmd_contacts)

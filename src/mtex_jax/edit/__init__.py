@@ -1,0 +1,57 @@
+"""Motion editing as optimisation through the differentiable decode and forward kinematics
+(SPEC §6): pose edits ("the right hand here at frame m, the texton's dynamics otherwise"),
+foot contacts and the floor, and cleaning of synthesised motion; solved with optimistix.
+"""
+
+from ._api import (
+    edit as edit,
+    edit_many as edit_many,
+    edit_residuals as edit_residuals,
+    segments_of as segments_of,
+)
+from ._clean import (
+    CleanResult as CleanResult,
+    clean as clean,
+    clean_weights as clean_weights,
+    contact_plants as contact_plants,
+    load_contacts as load_contacts,
+    save_contacts as save_contacts,
+)
+from ._constraints import (
+    Constraints as Constraints,
+    EditWeights as EditWeights,
+    make_constraints as make_constraints,
+)
+from ._prior import (
+    FrameSegments as FrameSegments,
+    WhitenedTextons as WhitenedTextons,
+    frame_segments as frame_segments,
+    prior_hessian as prior_hessian,
+    prior_residuals as prior_residuals,
+)
+from ._solve import EditResult as EditResult, solve_edit as solve_edit
+from ._synth import synthesize as synthesize
+
+__all__ = [
+    "CleanResult",
+    "Constraints",
+    "EditResult",
+    "EditWeights",
+    "FrameSegments",
+    "WhitenedTextons",
+    "clean",
+    "clean_weights",
+    "contact_plants",
+    "edit",
+    "edit_many",
+    "edit_residuals",
+    "frame_segments",
+    "load_contacts",
+    "make_constraints",
+    "prior_hessian",
+    "prior_residuals",
+    "save_contacts",
+    "segments_of",
+    "solve_edit",
+    "synthesize",
+]

@@ -1,0 +1,275 @@
+"""The public verbs: :func:`edit` (one motion) and :func:`edit_many` (a ``vmap`` batch)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..motion import FeatureMap, Motion
+from ..texture import MotionTexture, Synthesis
+from ._constraints import Constraints, EditWeights
+from ._prior import FrameSegments, WhitenedTextons, frame_segments
+from ._solve import EditResult, bfgs_polish, problem, solve_edit
+
+__all__ = ["edit", "edit_many", "edit_residuals", "segments_of"]
+
+_solve_jit = eqx.filter_jit(solve_edit)
+_bfgs_jit = eqx.filter_jit(bfgs_polish)
+
+
+@eqx.filter_jit
+def _solve_many(fm, tx, seg, Y0, sp, sh, cons, w, **kw):
+    one = lambda s, y, p, h, c: solve_edit(fm, tx, s, y, p, h, c, w, **kw)
+    return jax.vmap(one)(seg, Y0, sp, sh, cons)
+
+
+def _feature_map(texture: Any) -> FeatureMap:
+    if not isinstance(texture, MotionTexture):
+        raise TypeError(f"texture must be a MotionTexture, got {type(texture).__name__}")
+    if texture.feature_map is None:
+        raise ValueError("texture: learned from arrays (no feature map); editing needs one")
+    return texture.feature_map
+
+
+def segments_of(texture: MotionTexture, motion: Motion | Synthesis | Any) -> FrameSegments:
+    """Per-frame texton labels of a motion: carried from a :class:`Synthesis` (its path and
+    lengths), otherwise the texture's optimal segmentation (semi-Markov Viterbi)."""
+    if isinstance(motion, Synthesis):
+        return frame_segments(np.asarray(motion.lengths), np.asarray(motion.path))
+    seg = texture.segment(motion)
+    rows = seg.to_list()
+    if not rows:
+        raise ValueError("segments_of: the texture found no segmentation of this motion")
+    return frame_segments(np.array([r[1] for r in rows]), np.array([r[2] for r in rows]))
+
+
+def _observations(
+    texture: MotionTexture, motion: Any, start_position: Any, start_heading: Any
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    fm = _feature_map(texture)
+    if isinstance(motion, Synthesis):
+        if motion.motion is not None and start_position is None and start_heading is None:
+            sp, sh = fm.start_of(motion.motion)
+        else:
+            sp, sh = start_position, start_heading
+        Y = jnp.asarray(motion.Y)
+    elif isinstance(motion, Motion):
+        Y = fm.encode(motion)
+        sp, sh = fm.start_of(motion) if start_position is None else (start_position, start_heading)
+    else:
+        Y = texture.observations(motion)
+        sp, sh = start_position, start_heading
+    if not jnp.issubdtype(Y.dtype, jnp.floating):
+        Y = Y.astype(jnp.result_type(float))
+    if not bool(jnp.all(jnp.isfinite(Y))):
+        raise ValueError("motion: observation vectors contain NaN or inf")
+    sp = jnp.zeros(3, Y.dtype) if sp is None else jnp.asarray(sp, Y.dtype)
+    sh = jnp.zeros((), Y.dtype) if sh is None else jnp.asarray(sh, Y.dtype)
+    if sp.shape != (3,) or sh.shape != ():
+        raise ValueError("start_position must have shape (3,) and start_heading be a scalar")
+    return Y, sp, sh
+
+
+def _check(cons: Any, Y: jax.Array, fm: FeatureMap) -> Constraints:
+    if not isinstance(cons, Constraints):
+        raise TypeError(f"constraints must be made by make_constraints, got {type(cons).__name__}")
+    T, D = Y.shape
+    if np.shape(cons.poses) != (T, D):
+        raise ValueError(
+            f"constraints were made for {np.shape(cons.poses)} frames x dims, the motion is "
+            f"({T}, {D}); make them with n_frames={T}, dim={D}"
+        )
+    J = fm.skeleton.n_joints
+    for name, idx in (("joints", cons.joints), ("vel_joints", cons.vel_joints)):
+        if np.size(idx) and (np.min(idx) < 0 or np.max(idx) >= J):
+            raise ValueError(f"constraints.{name}: joint index outside the skeleton")
+    return jax.tree.map(
+        lambda a: a.astype(Y.dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, cons
+    )
+
+
+def _keep(cons: Constraints, fm: FeatureMap, floor_joints: Sequence[int] | None) -> tuple[int, ...]:
+    """Joints whose positions the solve computes: constrained joints, feet, floor joints
+    (default: every joint with a moving rotation channel)."""
+    js = {int(j) for j in np.asarray(cons.joints).reshape(-1)}
+    js |= {int(j) for j in np.asarray(cons.vel_joints).reshape(-1)}
+    js |= set(cons.feet)
+    if floor_joints is None:
+        names = fm.active_names
+        sk = fm.skeleton
+        js |= {
+            j for j in range(1, sk.n_joints) if any(n.startswith(f"{sk.names[j]}.") for n in names)
+        }
+    else:
+        js |= {int(j) for j in floor_joints}
+    return tuple(sorted(js))
+
+
+def edit(
+    texture: MotionTexture,
+    motion: Motion | Synthesis | Any,
+    constraints: Constraints,
+    *,
+    weights: EditWeights | None = None,
+    segments: FrameSegments | None = None,
+    start_position: Any = None,
+    start_heading: Any = None,
+    floor_joints: Sequence[int] | None = None,
+    relative: bool = True,
+    rounds: int = 3,
+    max_steps: int = 60,
+    fallback: bool = True,
+    cg_steps: int = 100,
+    cg_rtol: float = 1e-6,
+) -> EditResult:
+    """Edit a motion: meet the constraints, otherwise stay statistically like the texture.
+
+    Minimises ``½‖prior‖² + ½ Σ ‖constraint residuals‖²`` over the observation vectors
+    ``Y (T, D)`` (see :mod:`mtex_jax.edit` for the objective and which constraints are exact)
+    with Levenberg–Marquardt (optimistix), in whitened variables; BFGS is run from where it
+    stopped if it did not converge (``fallback``). The solve is jit-compiled once per shape.
+
+    Args:
+        texture: the motion texture (its textons are the prior; its feature map decodes).
+        motion: a :class:`Synthesis` (its texton segments are used), a :class:`Motion`
+            (segmented by the texture) or observation vectors ``(T, D)``.
+        constraints: from :func:`make_constraints` for this motion's ``T`` and ``D``.
+        weights: :class:`EditWeights` (default weights when ``None``).
+        segments: per-frame segmentation (default: :func:`segments_of`).
+        start_position, start_heading: root position ``(3,)`` and yaw of frame 0 (default:
+            the motion's own; the origin for raw observation vectors).
+        floor_joints: joints the floor applies to (default: every joint with a moving
+            rotation channel, and the feet).
+        relative: prior on the change (default) or the plain negative log-likelihood.
+        rounds: multiplier rounds for position targets.
+        max_steps: Levenberg–Marquardt steps per round.
+        fallback: run BFGS if Levenberg–Marquardt did not converge.
+        cg_steps, cg_rtol: conjugate-gradient limits of each Levenberg–Marquardt step.
+
+    Returns:
+        :class:`EditResult` (check ``converged`` and ``met``; ``report()`` says it in words).
+    """
+    fm = _feature_map(texture)
+    Y, sp, sh = _observations(texture, motion, start_position, start_heading)
+    cons = _check(constraints, Y, fm)
+    seg = segments if segments is not None else segments_of(texture, motion)
+    if seg.n_frames != Y.shape[0]:
+        raise ValueError(f"segments cover {seg.n_frames} frames, the motion has {Y.shape[0]}")
+    w = EditWeights() if weights is None else weights
+    if not isinstance(w, EditWeights):
+        raise TypeError(f"weights must be EditWeights, got {type(w).__name__}")
+    for name, v, lo in (("rounds", rounds, 1), ("max_steps", max_steps, 1)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+    tx = WhitenedTextons.of(texture.textons, Y.dtype)
+    keep = _keep(cons, fm, floor_joints)
+    kw: dict[str, Any] = dict(keep=keep, relative=bool(relative))
+    res = _solve_jit(
+        fm,
+        tx,
+        seg,
+        Y,
+        sp,
+        sh,
+        cons,
+        w,
+        rounds=rounds,
+        max_steps=max_steps,
+        cg_steps=cg_steps,
+        cg_rtol=cg_rtol,
+        **kw,
+    )
+    if fallback and not bool(res.converged):
+        res = _bfgs_jit(fm, tx, seg, Y, sp, sh, cons, w, res, **kw)
+    return res
+
+
+def edit_many(
+    texture: MotionTexture,
+    motions: Sequence[Any],
+    constraints: Sequence[Constraints],
+    *,
+    weights: EditWeights | None = None,
+    segments: Sequence[FrameSegments] | None = None,
+    floor_joints: Sequence[int] | None = None,
+    relative: bool = True,
+    rounds: int = 3,
+    max_steps: int = 60,
+) -> EditResult:
+    """Edit several motions of equal length at once: one ``vmap``-ed, jit-compiled solve.
+
+    The motions must have the same number of frames and their constraints the same shapes
+    (use ``pad_to`` of :func:`make_constraints`; plant feet in the same order). No BFGS
+    fallback: check ``converged`` per motion (and :func:`edit` those that did not).
+
+    Returns:
+        :class:`EditResult` with a leading batch axis on every field.
+    """
+    fm = _feature_map(texture)
+    if len(motions) == 0 or len(motions) != len(constraints):
+        raise ValueError("edit_many: give one constraints object per motion (at least one)")
+    obs = [_observations(texture, m, None, None) for m in motions]
+    if len({o[0].shape for o in obs}) != 1:
+        raise ValueError("edit_many: every motion must have the same (T, D)")
+    cons = [_check(c, o[0], fm) for c, o in zip(constraints, obs, strict=True)]
+    if len({c.feet for c in cons}) != 1:
+        raise ValueError("edit_many: every motion's constraints must plant the same feet")
+    segs = list(segments) if segments is not None else [segments_of(texture, m) for m in motions]
+    stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)
+    try:
+        C = stack(cons)
+    except ValueError:
+        raise ValueError("edit_many: the constraints differ in shape (use pad_to)") from None
+    Y = jnp.stack([o[0] for o in obs])
+    tx = WhitenedTextons.of(texture.textons, Y.dtype)
+    keep = tuple(sorted(set().union(*(_keep(c, fm, floor_joints) for c in cons))))
+    w = EditWeights() if weights is None else weights
+    return _solve_many(
+        fm,
+        tx,
+        stack(segs),
+        Y,
+        jnp.stack([o[1] for o in obs]),
+        jnp.stack([o[2] for o in obs]),
+        C,
+        w,
+        keep=keep,
+        relative=bool(relative),
+        rounds=rounds,
+        max_steps=max_steps,
+    )
+
+
+def edit_residuals(
+    texture: MotionTexture,
+    motion: Motion | Synthesis | Any,
+    constraints: Constraints,
+    *,
+    weights: EditWeights | None = None,
+    segments: FrameSegments | None = None,
+    start_position: Any = None,
+    start_heading: Any = None,
+    floor_joints: Sequence[int] | None = None,
+    relative: bool = True,
+) -> tuple[Any, jax.Array, Any]:
+    """The residual form :func:`edit` solves, for other solvers and for checking gradients.
+
+    Returns:
+        ``(fn, u0, to_Y)``: ``fn(u)`` is the tuple of residual arrays (whitened prior, position,
+        velocity, plant slide, plant height, floor) of the whitened variables ``u (T, D)``;
+        ``u0`` is zero (the start of the solve); ``to_Y(u)`` the observation vectors.
+    """
+    fm = _feature_map(texture)
+    Y, sp, sh = _observations(texture, motion, start_position, start_heading)
+    cons = _check(constraints, Y, fm)
+    seg = segments if segments is not None else segments_of(texture, motion)
+    w = EditWeights() if weights is None else weights
+    tx = WhitenedTextons.of(texture.textons, Y.dtype)
+    prob = problem(fm, tx, seg, Y, sp, sh, cons, w, bool(relative), _keep(cons, fm, floor_joints))
+    zero = jnp.zeros_like(cons.targets)
+    return (lambda u: prob.residuals(u, zero)), jnp.zeros_like(Y), prob.edited
