@@ -39,12 +39,13 @@ VALID_HELD = ["60_09", "60_10", "60_11"]
 
 
 def parse_config(text: str) -> tuple[str, dict[str, Any], dict[str, Any]]:
-    """``name:k=v,k=v`` → (name, synthesis options, learn options); ``paper`` alone is
-    ``SynthesisConfig.paper()`` with ``weighting=channel``."""
+    """``name:k=v,k=v`` → (name, synthesis options, learn options); a name starting with
+    ``paper`` or containing ``paper settings`` starts from ``SynthesisConfig.paper()`` with
+    ``weighting=channel``."""
     name, _, rest = text.partition(":")
     syn: dict[str, Any] = {}
     lrn: dict[str, Any] = {}
-    if name.startswith("paper"):
+    if name.startswith("paper") or "paper settings" in name:
         p = SynthesisConfig.paper()
         syn = {f: getattr(p, f) for f in SynthesisConfig.__dataclass_fields__}
         lrn = {"weighting": "channel"}
@@ -172,7 +173,12 @@ def main() -> None:
     ap.add_argument(
         "configs",
         nargs="*",
-        default=["default:", "paper:", "paper exact:sampler=exact"],
+        default=[
+            "implicit tree sampler (defaults):",
+            "implicit exact sampler (defaults):sampler=exact",
+            "implicit tree sampler, paper settings:",
+            "implicit exact sampler, paper settings:sampler=exact",
+        ],
         help="NAME:k=v,... (SynthesisConfig fields, weighting, min_explained, sampler)",
     )
     args = ap.parse_args()

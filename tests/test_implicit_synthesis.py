@@ -64,6 +64,7 @@ def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.nd
         SynthesisConfig(),
         SynthesisConfig(blend=0, continuation=1, max_run=0, candidates=1, leaf="weighted"),
         SynthesisConfig(blend=7, continuation=3, lookahead=3, leaf="uniform", candidates=4),
+        SynthesisConfig(leaf_cap=2, candidates=3),
         SynthesisConfig.paper(),
     ],
 )
@@ -131,7 +132,14 @@ def test_tree_at_tiny_beta_agrees_with_exhaustive_search(model, clips, leaf):
     paper-style synthesis replays the clip. Uniform/weighted leaves may pick another member
     of the leaf, which must then share the sign code of the exhaustive answer."""
     cfg = SynthesisConfig(
-        velocity=False, blend=0, leaf=leaf, lookahead=0, continuation=1, max_run=0, candidates=1
+        velocity=False,
+        blend=0,
+        leaf=leaf,
+        lookahead=0,
+        continuation=1,
+        max_run=0,
+        candidates=1,
+        leaf_cap=0,
     )
     clip = clips[2]
     _, it = model.synthesize_poses(jax.random.PRNGKey(0), clip, 30, 1e-9, config=cfg)
@@ -243,6 +251,7 @@ def test_bad_options_raise_clear_errors(model, clips):
         ({"lookahead": 1.5}, "lookahead"),
         ({"max_run": -2}, "max_run"),
         ({"candidates": 0}, "candidates"),
+        ({"leaf_cap": -1}, "leaf_cap"),
         ({"leaf": "nearest"}, "leaf"),
         ({"velocity": 1}, "velocity"),
         ({"velocity": False, "blend": 3}, "blend"),
@@ -300,6 +309,7 @@ def test_cli_synthesis_options(tmp_path, capsys):
         (["--min-explained", "2"], "min-explained"),
         (["--paper", "--blend", "3"], "blend"),
         (["--max-run", "-3"], "max-run"),
+        (["--leaf-cap", "-1"], "leaf-cap"),
     ):
         assert main(base + bad) == 2
         err = capsys.readouterr().err

@@ -104,7 +104,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 def _synthesis_config(args: argparse.Namespace):
     from ..implicit import SynthesisConfig
 
-    for name in ("blend", "lookahead", "max_run"):
+    for name in ("blend", "lookahead", "max_run", "leaf_cap"):
         value = getattr(args, name)
         if value is not None and value < 0:
             raise ValueError(f"--{name.replace('_', '-')} must be ≥ 0, got {value}")
@@ -113,7 +113,7 @@ def _synthesis_config(args: argparse.Namespace):
         if value is not None:
             positive_int(name, value)
     base = SynthesisConfig.paper() if args.paper else SynthesisConfig()
-    fields = ("blend", "leaf", "lookahead", "continuation", "max_run", "candidates")
+    fields = ("blend", "leaf", "lookahead", "continuation", "max_run", "candidates", "leaf_cap")
     opts = {f: getattr(base, f) for f in (*fields, "velocity")}
     opts |= {f: getattr(args, f) for f in fields if getattr(args, f) is not None}
     if args.velocity is not None:
@@ -270,6 +270,9 @@ def register(subparsers) -> None:
         "--max-run", type=int, default=None, help="cap on verbatim frames (0: none; default 12)"
     )
     s.add_argument("--candidates", type=int, default=None, help="tree walks per search")
+    s.add_argument(
+        "--leaf-cap", type=int, default=None, help="leaf members examined per walk (0: all)"
+    )
     s.add_argument(
         "--weighting",
         choices=("body", "channel"),

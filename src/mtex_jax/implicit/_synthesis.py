@@ -74,6 +74,9 @@ class SynthesisConfig(eqx.Module):
         max_run: after this many verbatim frames (continuing the previous database frame),
             the next search excludes the neighbourhood of the continuation (``0``: no cap).
         candidates: tree walks per search; the exact kernel picks among them (``1``: one walk).
+        leaf_cap: leaf members examined per walk (``0``: the whole leaf). A larger leaf
+            contributes a random block of ``leaf_cap`` consecutive members (cyclic), so the
+            cost per walk is ``O(b log n + leaf_cap · W)`` whatever the leaf sizes.
     """
 
     velocity: bool = eqx.field(static=True, default=True)
@@ -83,6 +86,7 @@ class SynthesisConfig(eqx.Module):
     continuation: int = eqx.field(static=True, default=6)
     max_run: int = eqx.field(static=True, default=12)
     candidates: int = eqx.field(static=True, default=16)
+    leaf_cap: int = eqx.field(static=True, default=32)
 
     def __check_init__(self) -> None:
         if not isinstance(self.velocity, bool):
@@ -92,6 +96,7 @@ class SynthesisConfig(eqx.Module):
         _check_int(self.continuation, "continuation", 1)
         _check_int(self.max_run, "max_run", 0)
         _check_int(self.candidates, "candidates", 1)
+        _check_int(self.leaf_cap, "leaf_cap", 0)
         if self.leaf not in _LEAVES:
             raise ValueError(
                 f"SynthesisConfig.leaf must be one of {', '.join(_LEAVES)}, got {self.leaf!r}"
@@ -150,11 +155,19 @@ def _search_tree(
     n = model.n_examples
 
     def walk(k: PRNGKeyArray) -> tuple[Array, Array]:
-        k_walk, k_leaf = jax.random.split(k)
+        k_walk, k_leaf, k_block = jax.random.split(k, 3)
         u = jax.random.uniform(k_walk, (model.n_components,), dtype=c.dtype)
         lo, hi, _ = _descend(model.sorted_codes, c / scale, u)
-        pos = lo + jnp.arange(model.leaf_max, dtype=jnp.int32)
-        valid = pos < hi
+        width = model.leaf_max if cfg.leaf_cap == 0 else min(cfg.leaf_cap, model.leaf_max)
+        j = jnp.arange(width, dtype=jnp.int32)
+        size = hi - lo
+        if width < model.leaf_max:  # a random cyclic block of `width` members
+            first = jax.random.randint(k_block, (), 0, jnp.maximum(size, 1))
+            first = jnp.where(size > width, first, 0)
+            pos = lo + (first + j) % jnp.maximum(size, 1)
+        else:
+            pos = lo + j
+        valid = j < size
         ex = model.order[jnp.minimum(pos, n - 1)]
         if cfg.leaf == "uniform":
             logw = jnp.zeros(pos.shape, c.dtype)

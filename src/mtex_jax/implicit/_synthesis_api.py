@@ -36,6 +36,7 @@ def _config(config: SynthesisConfig | None, leaf: Any, candidates: Any, fn: str)
             continuation=config.continuation,
             max_run=config.max_run,
             candidates=config.candidates,
+            leaf_cap=config.leaf_cap,
         )
     if candidates is not None:
         _check_candidates(candidates, fn)
@@ -47,6 +48,7 @@ def _config(config: SynthesisConfig | None, leaf: Any, candidates: Any, fn: str)
             continuation=config.continuation,
             max_run=config.max_run,
             candidates=int(candidates),
+            leaf_cap=config.leaf_cap,
         )
     return config
 
