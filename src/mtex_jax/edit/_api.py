@@ -24,8 +24,11 @@ _bfgs_jit = eqx.filter_jit(bfgs_polish)
 
 @eqx.filter_jit
 def _solve_many(fm, tx, seg, Y0, sp, sh, cons, w, **kw):
-    one = lambda s, y, p, h, c: solve_edit(fm, tx, s, y, p, h, c, w, **kw)
-    return jax.vmap(one)(seg, Y0, sp, sh, cons)
+    # lax.map, not vmap: under vmap, XLA's HLO verifier rejects the batched forward-kinematics
+    # dot_general (jax 0.10.2, "Expected instruction to have shape ..."); one compiled
+    # program runs the motions one after the other
+    one = lambda a: solve_edit(fm, tx, a[0], a[1], a[2], a[3], a[4], w, **kw)
+    return jax.lax.map(one, (seg, Y0, sp, sh, cons))
 
 
 def _feature_map(texture: Any) -> FeatureMap:
@@ -148,7 +151,8 @@ def edit(
         relative: prior on the change (default) or the plain negative log-likelihood.
         rounds: multiplier rounds for position targets.
         max_steps: Levenberg–Marquardt steps per round.
-        fallback: run BFGS if Levenberg–Marquardt did not converge.
+        fallback: run L-BFGS if Levenberg–Marquardt did not converge (not for float32
+            variables while x64 is enabled, where optimistix 0.1.0 mixes dtypes).
         cg_steps, cg_rtol: conjugate-gradient limits of each Levenberg–Marquardt step.
 
     Returns:
@@ -184,7 +188,10 @@ def edit(
         cg_rtol=cg_rtol,
         **kw,
     )
-    if fallback and not bool(res.converged):
+    # (optimistix 0.1.0's L-BFGS also keeps a default-float carry: no fallback for float32
+    # variables while x64 is enabled)
+    default_float = jnp.dtype(Y.dtype) == jnp.dtype(jnp.result_type(float))
+    if fallback and default_float and not bool(res.converged):
         res = _bfgs_jit(fm, tx, seg, Y, sp, sh, cons, w, res, **kw)
     return res
 
@@ -201,7 +208,7 @@ def edit_many(
     rounds: int = 3,
     max_steps: int = 60,
 ) -> EditResult:
-    """Edit several motions of equal length at once: one ``vmap``-ed, jit-compiled solve.
+    """Edit several motions of equal length in one jit-compiled program (``lax.map``).
 
     The motions must have the same number of frames and their constraints the same shapes
     (use ``pad_to`` of :func:`make_constraints`; plant feet in the same order). No BFGS

@@ -279,9 +279,14 @@ def problem(fm, tx, seg, Y0, sp, sh, cons, w, relative: bool, keep) -> _Problem:
     return eqx.tree_at(lambda p: (p.plant_h, p.root0), prob, (plant_h, root0))
 
 
-def _lm(rtol: float, atol: float, cg_steps: int, cg_rtol: float) -> optx.LevenbergMarquardt:
-    cg = lx.CG(rtol=cg_rtol, atol=1e-9, max_steps=cg_steps)
-    return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(cg))
+def _lm(rtol: float, atol: float, cg_steps: int, cg_rtol: float, dtype) -> Any:
+    cg = lx.Normal(lx.CG(rtol=cg_rtol, atol=1e-9, max_steps=cg_steps))
+    if jnp.dtype(dtype) != jnp.dtype(jnp.result_type(float)):
+        # optimistix 0.1.0 keeps Levenberg–Marquardt's damping in the default float dtype, so
+        # float32 variables with x64 enabled fail its structure check; Gauss–Newton (no
+        # damping; in the whitened variables JᵀJ ⪰ I, so its steps are well posed) instead
+        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=cg)
+    return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=cg)
 
 
 def solve_edit(
@@ -327,7 +332,7 @@ def solve_edit(
         :class:`EditResult` (``converged`` refers to the last round).
     """
     prob = problem(fm, tx, seg, Y0, start_position, start_heading, cons, weights, relative, keep)
-    solver = _lm(rtol, atol, cg_steps, cg_rtol)
+    solver = _lm(rtol, atol, cg_steps, cg_rtol, Y0.dtype)
 
     def fn(z: Array, shift: Array) -> tuple[Array, ...]:
         return prob.residuals(z, shift)
