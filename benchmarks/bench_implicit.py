@@ -224,22 +224,17 @@ def bench_synthesis(model: ImplicitModel, start: mj.Motion, quick: bool) -> dict
     n = 300 if not quick else 60
     ref_mean, ref_p95 = _step_stats(start)
     paper = SynthesisConfig.paper()
+
+    def paper_with(**kw) -> SynthesisConfig:
+        opts = {f: getattr(paper, f) for f in SynthesisConfig.__dataclass_fields__}
+        return SynthesisConfig(**(opts | kw))
+
     settings: list[tuple[str, float, str, SynthesisConfig]] = [  # label, β, sampler, options
         ("tree, defaults", 1.0, "tree", SynthesisConfig()),
         ("exact, defaults", 1.0, "exact", SynthesisConfig()),
-        (
-            "tree, paper settings, uniform leaf",
-            0.1,
-            "tree",
-            eqx.tree_at(lambda c: c.leaf, paper, "uniform"),
-        ),
+        ("tree, paper settings, uniform leaf", 0.1, "tree", paper_with(leaf="uniform")),
         ("tree, paper settings (weighted leaf)", 0.1, "tree", paper),
-        (
-            "tree, paper settings, SIR K=16",
-            1.0,
-            "tree",
-            eqx.tree_at(lambda c: c.candidates, paper, 16),
-        ),
+        ("tree, paper settings, SIR K=16", 1.0, "tree", paper_with(candidates=16)),
         ("exact, paper settings", 1.0, "exact", paper),
         ("exact, paper settings", 10.0, "exact", paper),
     ]
