@@ -2,8 +2,10 @@
 
 The split is fixed by ``../shared/data/README.md``: training 60_01–60_07, 60_09–60_11 (10
 clips), held out 60_12–60_15 (4 clips). Nothing here is tuned on the held-out clips: every
-setting is the README's (``LearnConfig(tmin=60, tmax=180, state_dim=12, fps=60,
-min_segments=3)`` for the texture at 60 Hz; ``window=10`` at 30 Hz for the implicit model, the
+setting is the README's (``LearnConfig(tmin=60, tmax=180, fps=60)``, the defaults otherwise,
+for the texture at 60 Hz, beside the paper's model as the README used it before:
+``state_dim=12, min_segments=3, observation="paper", durations="flat", selection="none",
+rho_max=None``; ``window=10`` at 30 Hz for the implicit model, the
 paper's setting).
 
 Rows, measured in one run:
@@ -28,6 +30,7 @@ Run: ``.venv/bin/python benchmarks/bench_quality.py`` (``--quick`` for a smoke r
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -58,6 +61,18 @@ SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
 TRAIN = ["60_01", "60_02", "60_03", "60_04", "60_05", "60_06", "60_07", "60_09", "60_10", "60_11"]
 HELD = ["60_12", "60_13", "60_14", "60_15"]
 FPS = 60.0
+# the paper's model as the README used it before issue 16 (its figures are reproduced exactly)
+PAPER_CFG = mj.LearnConfig(
+    tmin=60,
+    tmax=180,
+    state_dim=12,
+    fps=FPS,
+    min_segments=3,
+    observation="paper",
+    durations="flat",
+    selection="none",
+    rho_max=None,
+)
 IMPLICIT_FPS = 30.0
 SECONDS = 20.0
 
@@ -119,45 +134,6 @@ def ar2_samples(key: jax.Array, model: metrics.GaussianAR2, start: np.ndarray, n
     return Y
 
 
-def dynamax_arhmm(train_y, held_y, K: int, n_iter: int) -> dict[str, Any]:
-    """dynamax LARHMM (2 lags) with K states: held-out marginal per frame and the one-step
-    predictive mean error (mixture of the states' regressions under p(z_t | y_<t))."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_learn import dynamax_run  # the same regularised model as the learn benchmark
-
-    t0 = time.perf_counter()
-    res = dynamax_run(train_y, held_y, K, n_iter, 2, plain_iters=1)
-    return res | {"wall_s": time.perf_counter() - t0}
-
-
-def arhmm_prediction(train_y, held_y, K: int, n_iter: int) -> tuple[float, float, float]:
-    from dynamax.hidden_markov_model import LinearAutoregressiveHMM
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_learn import _regularised_emissions
-
-    D = train_y[0].shape[1]
-    hmm = LinearAutoregressiveHMM(K, D, num_lags=2)
-    hmm.emission_component = _regularised_emissions(K, D, 2, 1e-6, 1e-6)
-    pairs = [(jnp.asarray(y)[2:], hmm.compute_inputs(jnp.asarray(y))[2:]) for y in train_y]
-    E = jnp.concatenate([p[0] for p in pairs])
-    U = jnp.concatenate([p[1] for p in pairs])
-    params, props = hmm.initialize(jax.random.PRNGKey(0), method="kmeans", emissions=E)
-    params, lps = hmm.fit_em(params, props, E, inputs=U, num_iters=n_iter, verbose=False)
-    sq, n, ll = 0.0, 0, 0.0
-    for y in held_y:
-        e, u = jnp.asarray(y)[2:], hmm.compute_inputs(jnp.asarray(y))[2:]
-        post = hmm.filter(params, e, inputs=u)
-        W, b = params.emissions.weights, params.emissions.biases
-        means = jnp.einsum("kdm,tm->tkd", W, u) + b
-        yhat = jnp.einsum("tk,tkd->td", post.predicted_probs, means)
-        sq += float(jnp.sum((yhat - e) ** 2))
-        n += int(e.size)
-        ll += float(post.marginal_loglik)
-    frames = sum(len(y) - 2 for y in held_y)
-    return ll / frames, sq / n, float(np.asarray(lps)[-1]) / E.shape[0]
-
-
 # --------------------------------------------------------------------------------------------
 # the run
 # --------------------------------------------------------------------------------------------
@@ -185,15 +161,17 @@ def main() -> None:
     res["frames"] = dict(train=sum(m.n_frames for m in train), held=sum(m.n_frames for m in held))
 
     # ---------------------------------------------------------------- texture
-    cfg = mj.LearnConfig(tmin=60, tmax=180, state_dim=12, fps=FPS, min_segments=3)
-    if args.quick:
-        cfg = mj.LearnConfig(tmin=60, tmax=180, state_dim=12, fps=FPS, min_segments=3, max_iter=2)
-    log("learning the motion texture (README settings)")
+    it = dict(max_iter=2) if args.quick else {}
+    cfg = mj.LearnConfig(tmin=60, tmax=180, fps=FPS, **it)
+    log("learning the motion texture (README settings: the defaults, tmin=60, tmax=180)")
     t_learn, tex = timed(lambda: mj.learn(train, cfg))
     lab = np.asarray(tex.segments)[:, 3]
     counts = np.bincount(lab, minlength=tex.n_textons)
     res["texture"] = dict(
         learn_s=t_learn,
+        observation=tex.config.observation,
+        state_dim=tex.config.state_dim,
+        durations=tex.config.durations,
         textons=tex.n_textons,
         segments=int(lab.size),
         segments_per_texton=float(lab.size / tex.n_textons),
@@ -201,9 +179,25 @@ def main() -> None:
         spectral_radius_max=float(np.max(np.asarray(mj.texture.spectral_radius(tex.textons)))),
     )
     log(f"  {tex.n_textons} textons from {lab.size} segments in {t_learn:.1f} s")
+    # every texton run by its dynamics with sampled noise for 10,000 frames from its own key
+    # poses: finite, and how far beyond the training range (max |y| over the training max)
+    kp, span = np.asarray(tex.key_poses), float(np.abs(np.asarray(tex.key_poses)).max())
+    runs = [
+        np.asarray(synthesize_texton(jax.random.key(i), tex.textons[i], 10_000, kp[lab == i][0]))
+        for i in range(tex.n_textons)
+    ]
+    res["texture"]["noise_driven_10k"] = dict(
+        finite=bool(all(np.isfinite(r).all() for r in runs)),
+        max_over_key_pose_range=float(max(np.abs(r).max() for r in runs) / span),
+    )
 
     log("density and prediction on the held-out clips")
     dens = metrics.density_report(tex, train, held)
+    log("the paper's model (the previous README settings) on the same split")
+    paper = mj.learn(train, PAPER_CFG if not it else dataclasses.replace(PAPER_CFG, **it))
+    for name, r in metrics.density_report(paper, train, held).items():
+        if name.startswith("motion texture"):
+            dens[f"paper model, {paper.n_textons} textons (k = 12){name[14:]}"] = r
     fm = tex.feature_map
     assert fm is not None
     train_y = [np.asarray(fm.encode(m)) for m in train]
@@ -234,6 +228,8 @@ def main() -> None:
     log("dynamax linear ARHMM with as many states as textons")
     try:
         iters = 3 if args.quick else args.arhmm_iters
+        from quality_arhmm import arhmm_prediction
+
         ll_h, mse_h, train_ll = arhmm_prediction(train_y, held_y, tex.n_textons, iters)
         dens[f"dynamax ARHMM (K = {tex.n_textons}, 2 lags)"] = dict(
             loglik_per_frame=ll_h, prediction_mse=mse_h, frames=float(sum(map(len, held_y)))
@@ -248,8 +244,9 @@ def main() -> None:
     sc = jax.block_until_ready(segment_scores(tex.textons, Ycat))
     lM, lpi = jnp.log(tex.M), jnp.log(tex.pi)
     nT = jnp.asarray(Ycat.shape[0])
-    fwd = lambda: forward_log_likelihood(sc, lM, lpi, nT, cfg.tmin, cfg.tmax)
-    vit = lambda: viterbi_segments(sc, lM, lpi, nT, cfg.tmin, cfg.tmax)
+    ld = tex.log_durations
+    fwd = lambda: forward_log_likelihood(sc, lM, lpi, nT, cfg.tmin, cfg.tmax, ld)
+    vit = lambda: viterbi_segments(sc, lM, lpi, nT, cfg.tmin, cfg.tmax, ld)
     c_f, _ = timed(fwd)
     c_v, _ = timed(vit)
     tf = [timed(fwd)[0] for _ in range(5)]
@@ -382,10 +379,15 @@ def write(res: dict[str, Any], out: Path) -> None:
         f"load {res['machine']['load_before'][0]:.1f} before, "
         f"{res['machine']['load_after'][0]:.1f} after; total {res['total_s']:.0f} s.",
         "",
-        f"Texture (README settings, 60 Hz): {t['textons']} textons from {t['segments']} "
+        f"Texture (README settings, 60 Hz; observation model {t.get('observation')}, "
+        f"k = {t.get('state_dim')}, {t.get('durations')} durations): "
+        f"{t['textons']} textons from {t['segments']} "
         f"segments ({t['segments_per_texton']:.2f} per texton, "
         f"{100 * t['single_segment_share']:.0f} % with a single segment), largest spectral "
-        f"radius {t['spectral_radius_max']:.3f}, learned in {t['learn_s']:.1f} s.",
+        f"radius {t['spectral_radius_max']:.3f}, learned in {t['learn_s']:.1f} s. Every "
+        f"texton run by its dynamics with sampled noise for 10,000 frames from its key poses: "
+        f"finite {t['noise_driven_10k']['finite']}, largest |y| "
+        f"{t['noise_driven_10k']['max_over_key_pose_range']:.2f}× the key poses' largest.",
         "",
         "## Density and one-step prediction (held-out clips, texture's observation vectors)",
         "",

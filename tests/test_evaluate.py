@@ -8,12 +8,15 @@ import pytest
 
 import mtex_jax as mj
 from mtex_jax.cli import main
+from paper_settings import PAPER
 
 
 @pytest.fixture(scope="module")
 def cmu_model(tmp_path_factory, cmu_files):
     clips = [mj.read_bvh(f).resample(30.0) for f in cmu_files[:3]]
-    cfg = mj.LearnConfig(tmin=30, tmax=90, state_dim=6, fps=30.0, threshold=0.3, max_iter=2)
+    cfg = mj.LearnConfig(
+        tmin=30, tmax=90, state_dim=6, fps=30.0, threshold=0.3, max_iter=2, **PAPER
+    )
     path = tmp_path_factory.mktemp("eval") / "salsa.npz"
     mj.learn(clips, cfg).save(path)
     return path
@@ -62,7 +65,9 @@ def test_evaluate_on_cmu_clips(cmu_model, cmu_files, tmp_path, capsys):
 
 def test_evaluate_on_embedded_data(tmp_path, capsys):
     clips = [mj.load_example(n) for n in ("dance_a", "dance_b", "walk", "run")]
-    cfg = mj.LearnConfig(tmin=12, tmax=36, state_dim=5, fps=30.0, threshold=0.5, max_iter=2)
+    cfg = mj.LearnConfig(
+        tmin=12, tmax=36, state_dim=5, fps=30.0, threshold=0.5, max_iter=2, **PAPER
+    )
     model = tmp_path / "tex.npz"
     mj.learn(clips, cfg).save(model)
     code = main(

@@ -13,6 +13,7 @@ from scipy.optimize import linear_sum_assignment
 
 import mtex_jax as mj
 from mtex_jax.texture import LearnConfig, MotionTexture, learn, load_texture
+from paper_settings import PAPER
 
 
 # ---------------------------------------------------------------------------------------------
@@ -81,7 +82,7 @@ def test_recovers_a_known_motion_texture(seed):
     rng = np.random.default_rng(seed)
     Y, starts, labels = sample_texture(rng, make_textons(rng))
     assert len(starts) >= 40 and len(set(labels.tolist())) == 5
-    cfg = LearnConfig(tmin=40, tmax=120, state_dim=4, bic_thresholds=(0.1, 0.3, 1.0))
+    cfg = LearnConfig(tmin=40, tmax=120, state_dim=4, bic_thresholds=(0.1, 0.3, 1.0), **PAPER)
     mt = learn([Y], cfg)
     segs = np.asarray(mt.segments)
     f1 = boundary_f1(segs[:, 1], starts)
@@ -96,7 +97,7 @@ def test_recovers_a_known_motion_texture(seed):
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def salsa_texture(cmu_motions):
-    cfg = LearnConfig(tmin=60, tmax=180, state_dim=12, fps=60.0, threshold=0.3, max_iter=4)
+    cfg = LearnConfig(tmin=60, tmax=180, state_dim=12, fps=60.0, threshold=0.3, max_iter=4, **PAPER)
     return learn(cmu_motions, cfg)
 
 
@@ -164,7 +165,7 @@ def test_model_file_errors(salsa_texture, tmp_path):
 def test_learning_is_deterministic():
     rng = np.random.default_rng(7)
     Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=20)
-    cfg = LearnConfig(tmin=40, tmax=120, state_dim=4, threshold=0.5, max_iter=3)
+    cfg = LearnConfig(tmin=40, tmax=120, state_dim=4, threshold=0.5, max_iter=3, **PAPER)
     a = learn([Y[:900], Y[900:]], cfg)
     b = learn([Y[:900], Y[900:]], cfg)
     for x, y in zip(jax_leaves(a), jax_leaves(b), strict=True):
@@ -245,7 +246,7 @@ def test_learn_float32_smoke():
     clips = [mj.load_example(n).resample(30.0) for n in ["crawl", "dance_a", "kick", "spin"]]
     fm = mj.FeatureMap.fit(clips)
     ys = [np.asarray(fm.encode(m), dtype=np.float32) for m in clips]
-    mt = learn(ys, LearnConfig(tmin=18, tmax=54, state_dim=6, max_iter=2))
+    mt = learn(ys, LearnConfig(tmin=18, tmax=54, state_dim=6, max_iter=2, **PAPER))
     assert mt.textons.B.dtype == jnp.float32
     for leaf in jax.tree.leaves(mt.textons):
         assert np.all(np.isfinite(np.asarray(leaf)))
@@ -257,8 +258,9 @@ def test_min_segments_prunes_rarely_used_textons():
     Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=30)
     parts = [Y[: len(Y) // 2], Y[len(Y) // 2 :]]
     base = dict(tmin=40, tmax=120, state_dim=4, threshold=0.05, max_iter=6)
-    loose = learn(parts, LearnConfig(**base))
-    tight = learn(parts, LearnConfig(**base, min_segments=3))
+    paper = {**PAPER, "min_segments": 1}
+    loose = learn(parts, LearnConfig(**base, **paper))
+    tight = learn(parts, LearnConfig(**base, **{**paper, "min_segments": 3}))
     c_loose = np.bincount(np.asarray(loose.key_pose_labels))
     c_tight = np.bincount(np.asarray(tight.key_pose_labels), minlength=tight.n_textons)
     assert c_loose.min() < 3  # this setting does leave rarely used textons without pruning

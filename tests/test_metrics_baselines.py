@@ -16,6 +16,7 @@ from mtex_jax.metrics import (
     prediction_error,
     texture_predict,
 )
+from paper_settings import PAPER
 
 
 def _ar2_data(rng, T, D, n_seq=3):
@@ -113,7 +114,9 @@ def test_texture_prediction_equals_numpy(cmu_motions):
     import mtex_jax as mj
 
     train = [m.resample(30.0) for m in cmu_motions[:2]]
-    cfg = mj.LearnConfig(tmin=30, tmax=90, state_dim=6, fps=30.0, threshold=0.3, max_iter=1)
+    cfg = mj.LearnConfig(
+        tmin=30, tmax=90, state_dim=6, fps=30.0, threshold=0.3, max_iter=1, **PAPER
+    )
     tex = mj.learn(train, cfg)
     clip = cmu_motions[12].resample(30.0)[:200]
     pred, labels = texture_predict(tex, clip)

@@ -20,6 +20,7 @@ import pytest
 import mtex_jax as mj
 from mtex_jax.cli import main
 from mtex_jax.texture import Texton
+from paper_settings import PAPER
 
 DATA = Path(mj.__file__).resolve().parent / "data" / "deepmimic"
 
@@ -31,7 +32,7 @@ DATA = Path(mj.__file__).resolve().parent / "data" / "deepmimic"
 def small_texture(tmp_path_factory):
     """A small texture learned from two embedded clips, and its model file."""
     clips = [mj.load_example("dance_a"), mj.load_example("dance_b")]
-    cfg = mj.LearnConfig(tmin=10, tmax=30, state_dim=4, fps=30.0, max_iter=2)
+    cfg = mj.LearnConfig(tmin=10, tmax=30, state_dim=4, fps=30.0, max_iter=2, **PAPER)
     tex = mj.learn(clips, cfg)
     path = tmp_path_factory.mktemp("model") / "texture.npz"
     tex.save(path)

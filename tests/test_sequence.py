@@ -13,12 +13,15 @@ import pytest
 
 import mtex_jax as mj
 from mtex_jax import internal
+from paper_settings import PAPER
 
 
 @pytest.fixture(scope="module")
 def texture():
     clips = [mj.load_example(n) for n in ("dance_a", "dance_b", "walk", "run")]
-    cfg = mj.LearnConfig(tmin=12, tmax=36, state_dim=6, fps=30.0, threshold=0.3, max_iter=3)
+    cfg = mj.LearnConfig(
+        tmin=12, tmax=36, state_dim=6, fps=30.0, threshold=0.3, max_iter=3, **PAPER
+    )
     return mj.learn(clips, cfg)
 
 

@@ -10,6 +10,7 @@ import pytest
 
 import mtex_jax as mj
 from mtex_jax.internal import usable_key_poses
+from paper_settings import PAPER
 
 FPS = 60.0
 
@@ -28,7 +29,7 @@ def salsa(cmu_motions):
     # textons fitted on one or two 1 s segments have unreliable dynamics (spectral radius up
     # to 1.85 without pruning): prune textons with fewer than 3 training segments
     cfg = mj.LearnConfig(
-        tmin=60, tmax=180, state_dim=12, threshold=0.3, max_iter=10, min_segments=3
+        tmin=60, tmax=180, state_dim=12, threshold=0.3, max_iter=10, **{**PAPER, "min_segments": 3}
     )
     return mj.learn(clips, cfg), clips
 

@@ -121,6 +121,9 @@ def run_demo(
         f" s), {len(held)} held out ({', '.join(held_names)}), {FPS:g} Hz\n"
         f"  {salsa_credit().splitlines()[2]} {salsa_credit().splitlines()[3]}"
     )
+    # the paper's texton model (k = 12, white residual, flat durations): on the salsa clips its
+    # zero-noise synthesis is as smooth as the denser default model's (benchmarks/results/
+    # quality.md) and it learns several times faster
     cfg = LearnConfig(
         tmin=60,
         tmax=180,
@@ -129,6 +132,10 @@ def run_demo(
         min_segments=3,
         threshold=threshold,
         max_iter=max_iter,
+        observation="paper",
+        durations="flat",
+        selection="none",
+        rho_max=None,
     )
     say(
         f"learning a motion texture: segments of {cfg.tmin}-{cfg.tmax} frames "

@@ -39,11 +39,15 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         max_iter=args.max_iter,
         fps=float(fps),
         min_segments=args.min_segments,
+        observation=args.observation,
+        durations=args.durations,
+        selection=args.selection,
     )
     print(
         f"learning from {len(motions)} clip(s), {sum(m.duration for m in motions):.1f} s of "
         f"motion at {fps:g} Hz; tmin {cfg.tmin} frames, tmax {cfg.tmax} frames, "
-        f"state dim {cfg.state_dim}",
+        f"state dim {cfg.state_dim if cfg.state_dim is not None else 'by BIC'}, "
+        f"observation model {cfg.observation}",
         flush=True,
     )
     tex = learn(motions, cfg, verbose=not args.quiet)
@@ -238,7 +242,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     s.add_argument("--tmin", type=float, default=1.0, help="shortest segment, seconds (default 1)")
     s.add_argument("--tmax", type=float, default=3.0, help="longest segment, seconds (default 3)")
-    s.add_argument("--state-dim", type=int, default=12, help="texton state dimension (default 12)")
+    s.add_argument(
+        "--state-dim",
+        type=int,
+        default=None,
+        help="texton state dimension (default: chosen by BIC; the paper used 12)",
+    )
+    s.add_argument(
+        "--observation",
+        choices=("residual", "full", "paper"),
+        default="residual",
+        help="observation model of the textons (default residual; paper = MT-11)",
+    )
+    s.add_argument(
+        "--durations",
+        choices=("lognormal", "flat"),
+        default="lognormal",
+        help="segment-length distribution per texton (default lognormal; flat = the paper)",
+    )
+    s.add_argument(
+        "--selection",
+        choices=("bic", "none"),
+        default="bic",
+        help="choose the number of textons by BIC after EM (default) or keep EM's (none)",
+    )
     g = s.add_mutually_exclusive_group()
     g.add_argument(
         "--threshold",
@@ -259,8 +286,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument(
         "--min-segments",
         type=int,
-        default=1,
-        help="prune textons with fewer training segments (default 1: no pruning)",
+        default=3,
+        help="prune textons with fewer training segments (default 3; 1: no pruning, the paper)",
     )
     s.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
     s.set_defaults(func=_cmd_learn)

@@ -32,9 +32,11 @@ from ..texture._fit import _fit_texton_traced as fit_texton_traced
 
 # frame terms: the jitted kernel (to spy on) and the traced kernels (to count traces)
 from ..texture._frame_terms import (
-    _all_terms_traced as all_terms_traced,
     _frame_terms_jit as frame_terms_jit,
     _frame_terms_traced as frame_terms_traced,
+)
+from ..texture._frame_terms_ref import (
+    _all_terms_traced as all_terms_traced,
     frame_terms_per_texton as frame_terms_per_texton,
 )
 

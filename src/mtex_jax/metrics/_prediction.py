@@ -9,7 +9,9 @@ with the whole clip in view), and that texton's dynamics on its own state:
 
     x_s = Cᵀ (y_s − μ)  (s = t−1, t−2),   ŷ_t = μ + C (A1 x_{t−1} + A2 x_{t−2} + d)
 
-so the part of ``y`` outside the texton's subspace is predicted by the texton's mean.
+and the part of ``y`` outside the texton's subspace, ``r = (I − C Cᵀ)(y − μ)``, by the
+texton's residual AR(2), ``r̂_t = a₁ r_{t−1} + a₂ r_{t−2}`` (``"residual"`` textons; the
+others have ``a = 0``: the texton's mean, as in the paper).
 """
 
 from __future__ import annotations
@@ -33,7 +35,11 @@ def _predict_labelled(textons: Texton, labels: Array, Y: Array) -> Array:
     x1 = jnp.einsum("tdk,td->tk", tex.C, z1)
     x2 = jnp.einsum("tdk,td->tk", tex.C, z2)
     xh = jnp.einsum("tij,tj->ti", tex.A1, x1) + jnp.einsum("tij,tj->ti", tex.A2, x2) + tex.d
-    return tex.mu + jnp.einsum("tdk,tk->td", tex.C, xh)
+    # the residual's own AR(2) ("residual" textons; a = 0 for the others)
+    r1 = z1 - jnp.einsum("tdk,tk->td", tex.C, x1)
+    r2 = z2 - jnp.einsum("tdk,tk->td", tex.C, x2)
+    rh = tex.res_a[:, :1] * r1 + tex.res_a[:, 1:] * r2
+    return tex.mu + jnp.einsum("tdk,tk->td", tex.C, xh) + rh
 
 
 def _take(textons: Texton, idx: Int[Array, " n"]) -> Texton:

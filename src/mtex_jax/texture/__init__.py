@@ -14,6 +14,10 @@ from ._choreograph import (
 from ._config import (
     LearnConfig as LearnConfig,
 )
+from ._durations import (
+    fit_durations as fit_durations,
+    flat_durations as flat_durations,
+)
 from ._fit import (
     fit_texton as fit_texton,
     texton_from_stats as texton_from_stats,
@@ -24,6 +28,8 @@ from ._forward import (
 )
 from ._frame_terms import (
     frame_terms as frame_terms,
+)
+from ._frame_terms_ref import (
     init_terms as init_terms,
 )
 from ._init import (
@@ -74,6 +80,10 @@ from ._segment import (
     segment_scorer as segment_scorer,
     viterbi_segments as viterbi_segments,
 )
+from ._select import (
+    choose_state_dim as choose_state_dim,
+    n_params as n_params,
+)
 from ._sequence import (
     Synthesis as Synthesis,
     synthesize as synthesize,
@@ -90,6 +100,7 @@ from ._synthesis import (
     synthesize_texton as synthesize_texton,
 )
 from ._texton import (
+    OBSERVATION_MODELS as OBSERVATION_MODELS,
     Texton as Texton,
     companion_matrix as companion_matrix,
     spectral_radius as spectral_radius,
@@ -98,6 +109,7 @@ from ._texton import (
 
 __all__ = [
     "MAX_SELF_REPEATS",
+    "OBSERVATION_MODELS",
     "BandedSolution",
     "BlockTridiagCholesky",
     "DynamicsStats",
@@ -116,12 +128,15 @@ __all__ = [
     "block_banded_solve_status",
     "block_tridiag_cholesky",
     "block_tridiag_solve",
+    "choose_state_dim",
     "choreograph",
     "companion_matrix",
     "dynamics_stats",
     "exact_log_likelihood",
     "exact_log_likelihood_segments",
+    "fit_durations",
     "fit_texton",
+    "flat_durations",
     "forward_log_likelihood",
     "frame_stats",
     "frame_terms",
@@ -131,6 +146,7 @@ __all__ = [
     "load_texture",
     "log_likelihood",
     "match_texton",
+    "n_params",
     "path_cost",
     "path_of_length",
     "random_path",

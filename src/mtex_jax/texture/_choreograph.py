@@ -9,7 +9,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ..core import check_key
-from ._frame_terms import frame_terms, init_terms
+from ._frame_terms import frame_terms
+from ._frame_terms_ref import init_terms
 from ._keyposes import _instances
 from ._model import MotionTexture
 from ._paths import path_of_length, shortest_path

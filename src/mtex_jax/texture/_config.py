@@ -13,7 +13,10 @@ class LearnConfig:
     Attributes:
         tmin: shortest segment (frames, ``>= 3``); the paper uses about 1 s.
         tmax: longest segment (frames); ``None`` = unbounded (paper-exact, ``O(T²)``).
-        state_dim: texton state dimension ``k`` (the paper: 12–15).
+        state_dim: texton state dimension ``k`` (the paper: 12–15); ``None`` (default):
+            ``D`` for ``observation="full"``, else chosen by BIC of one texton fitted on all
+            the clips among 2, 4, … and ``D`` (:func:`choose_state_dim`); when BIC chooses
+            ``D`` there is no residual left and the textons are ``"full"``.
         threshold: greedy-initialisation error threshold (squared one-step prediction error
             per observation dimension, in the units of ``Y``: z-units for motions). ``None``:
             from ``n_textons``, else by BIC over ``bic_thresholds``, else 0.3.
@@ -23,19 +26,34 @@ class LearnConfig:
         tol: stop when the objective gains less than ``tol`` per frame.
         pseudo_count: Dirichlet pseudo-count added to transition and initial counts.
         fps: resample motions to this frame rate first (``None``: keep; all clips must agree).
-        ridge, q_floor, sigma2_floor, rho_max, init_prior_weight: texton fit regularisation
-            (see :func:`fit_texton`).
+        ridge, q_floor, sigma2_floor, init_prior_weight: texton fit regularisation (see
+            :func:`fit_texton`).
+        rho_max: bound on every texton's companion spectral radius (default 1: stable
+            textons, so noise-driven synthesis stays bounded); ``None`` = unbounded (the
+            paper).
         shard: split sequences across all JAX devices when there is more than one.
         bic_thresholds: thresholds to choose from by BIC (see :func:`bic_select`).
+        observation: the observation model of every texton (see :class:`Texton`):
+            ``"residual"`` (default: the residual outside the state subspace follows its own
+            AR(2)), ``"full"`` (``k = D``: an AR(2) on ``y``, an autoregressive HSMM) or
+            ``"paper"`` (MT-11: white residual noise).
+        durations: segment-length distribution of every texton on ``[tmin, tmax]``:
+            ``"lognormal"`` (default: a discretised log-normal fitted in the M-step, mixed
+            with 1 % of the flat one) or ``"flat"`` (the paper). With ``tmax=None`` the
+            durations are flat.
+        selection: ``"bic"`` (default): after EM, textons are removed one at a time (the one
+            with the fewest segments; the clips segmented again and EM rerun) while that lowers
+            ``BIC = −2 log P(Y, H) + p log n``, so the number of textons is chosen by the
+            data; ``"none"``: keep EM's textons (the paper).
         min_segments: prune textons that the segmentation gives fewer training segments: after
             each E-step they are removed (``M``, ``π`` renormalised) and the clips segmented
             again by the remaining textons, which EM then refits (a texton fitted on one
-            60-frame segment has unreliable dynamics). ``1`` = no pruning (the paper).
+            60-frame segment has unreliable dynamics). Default 3; ``1`` = no pruning (the paper).
     """
 
     tmin: int = 60
     tmax: int | None = 180
-    state_dim: int = 12
+    state_dim: int | None = None
     threshold: float | None = None
     n_textons: int | None = None
     max_iter: int = 20
@@ -45,11 +63,14 @@ class LearnConfig:
     ridge: float = 1e-6
     q_floor: float = 1e-6
     sigma2_floor: float = 1e-6
-    rho_max: float | None = None
+    rho_max: float | None = 1.0
     init_prior_weight: float = 4.0
     shard: bool = True
     bic_thresholds: tuple[float, ...] | None = None
-    min_segments: int = 1
+    min_segments: int = 3
+    observation: str = "residual"
+    durations: str = "lognormal"
+    selection: str = "bic"
 
     def __post_init__(self) -> None:
         if isinstance(self.min_segments, bool) or not isinstance(self.min_segments, int):
@@ -65,7 +86,22 @@ class LearnConfig:
                 f"LearnConfig.tmax must be None or an integer >= tmin = {self.tmin}, "
                 f"got {self.tmax!r}"
             )
-        if not isinstance(self.state_dim, int) or self.state_dim < 1:
+        if self.observation not in ("paper", "residual", "full"):
+            raise ValueError(
+                "LearnConfig.observation must be 'paper', 'residual' or 'full', "
+                f"got {self.observation!r}"
+            )
+        if self.selection not in ("bic", "none"):
+            raise ValueError(
+                f"LearnConfig.selection must be 'bic' or 'none', got {self.selection!r}"
+            )
+        if self.durations not in ("flat", "lognormal"):
+            raise ValueError(
+                f"LearnConfig.durations must be 'flat' or 'lognormal', got {self.durations!r}"
+            )
+        if self.state_dim is not None and (
+            not isinstance(self.state_dim, int) or self.state_dim < 1
+        ):
             raise ValueError(
                 f"LearnConfig.state_dim must be a positive integer, got {self.state_dim!r}"
             )

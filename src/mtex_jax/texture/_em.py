@@ -1,9 +1,12 @@
-"""The M-step building blocks of learning (MT §4.1): fitting every texton from its segments,
-transition counts, and pruning of under-used textons."""
+"""Hard EM of learning (MT §4.1): the M-step building blocks (fitting every texton from its
+segments, transition counts, pruning of under-used textons), the padded and sharded data with
+the jitted M- and E-steps (``_Runner``), and the EM loop (``_em``)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -11,9 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._fit import _texton_from_stats_impl
+from ..motion import FeatureMap
+from ._config import LearnConfig
+from ._durations import fit_durations
+from ._fit import _SolveOptions, _texton_from_stats_impl
 from ._init import Segs
+from ._model import MotionTexture
 from ._scores import _segment_scores_impl
+from ._segment import _segment_batch
 from ._stats import _dynamics_stats_impl, _frame_stats_impl, _subspace_impl
 from ._texton import Texton
 
@@ -162,3 +170,226 @@ def _relabel(segs: Segs) -> tuple[Segs, np.ndarray]:
     out = segs.copy()
     out[:, 3] = [remap[int(i)] for i in segs[:, 3]]
     return out, used
+
+
+# ---------------------------------------------------------------------------------------------
+# EM
+# ---------------------------------------------------------------------------------------------
+_PAD_E_STEP = 16
+
+
+class _Runner:
+    """Padded, optionally sharded data and the jitted M- and E-steps."""
+
+    def __init__(self, ys: list[np.ndarray], config: LearnConfig) -> None:
+        self.ys = ys
+        self.config = config
+        self.n_real = len(ys)
+        devices = jax.devices()
+        n_dev = len(devices) if config.shard else 1
+        n_seq = -(-self.n_real // n_dev) * n_dev
+        ypad, nf = _pad(ys, n_seq)
+        self.T = ypad.shape[1]
+        self.n_seq = n_seq
+        self.sharding = None
+        if n_dev > 1:
+            mesh = jax.sharding.Mesh(np.asarray(devices), ("seq",))
+            self.sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seq"))
+        self.Y = self._put(ypad)
+        self.nf = self._put(nf)
+        self.opts = _SolveOptions.make(
+            config.ridge,
+            config.q_floor,
+            config.rho_max,
+            config.init_prior_weight,
+            config.observation,
+            config.sigma2_floor,
+        )
+        self.tmax = self.T if config.tmax is None else config.tmax
+        self.use_durations = config.durations == "lognormal" and config.tmax is not None
+        # model selection visits every smaller texton count: stacks are padded to at least
+        # this many textons there, so that each step reuses the compiled programs
+        self.min_cap = 1
+
+    def durations(self, segs: Segs, n_textons: int) -> np.ndarray | None:
+        """Per-texton duration log-probabilities fitted to ``segs`` (``None``: flat)."""
+        if not self.use_durations:
+            return None
+        return fit_durations(segs[:, 2], segs[:, 3], n_textons, self.config.tmin, self.tmax)
+
+    def _put(self, a: np.ndarray) -> Array:
+        if self.sharding is None:
+            return jnp.asarray(a)
+        return jax.device_put(a, self.sharding)
+
+    def m_step(self, segs: Segs, n_textons: int) -> tuple[Texton, np.ndarray, np.ndarray]:
+        """Fit all textons; the stack is padded to a power of two (slots past ``n_textons``
+        are unused) so that a changing number of textons recompiles rarely."""
+        n = len(segs)
+        cap = _capacity(n)
+        rows = np.zeros((cap, 4), dtype=np.int64)
+        rows[:n] = segs
+        valid = np.arange(cap) < n
+        assert self.config.state_dim is not None  # resolved by learn before EM
+        tex = _fit_all(
+            self.Y,
+            jnp.asarray(rows),
+            jnp.asarray(valid),
+            max(_capacity(n_textons), self.min_cap),
+            self.tmax,
+            self.config.state_dim,
+            float(self.config.sigma2_floor),
+            self.opts,
+        )
+        M, pi = _transitions(segs, n_textons, self.config.pseudo_count)
+        return tex, M, pi
+
+    def e_step(
+        self, tex: Texton, M: np.ndarray, pi: np.ndarray, log_d: np.ndarray | None = None
+    ) -> tuple[Segs, float]:
+        # only the real textons: the capacity padding of the M-step would double the work
+        # (N_t changes rarely, so the extra compilations are few); up to _PAD_E_STEP textons
+        # the stack is padded to a power of two (model selection visits every small N_t)
+        n = M.shape[0]
+        cap = max(_capacity(n), self.min_cap) if n <= _PAD_E_STEP else n
+        tex = jax.tree.map(lambda a: a[jnp.minimum(jnp.arange(cap), n - 1)], tex)
+        log_M, log_pi = _padded_logs(M, pi, cap)
+        if log_d is not None and cap > n:
+            log_d = np.concatenate([log_d, np.zeros((cap - n, log_d.shape[1]))])
+        seg = _segment_batch(
+            tex,
+            jnp.asarray(log_M, self.Y.dtype),
+            jnp.asarray(log_pi, self.Y.dtype),
+            self.Y,
+            self.nf,
+            self.config.tmin,
+            self.tmax,
+            None if log_d is None else jnp.asarray(log_d, self.Y.dtype),
+        )
+        starts = np.asarray(seg.starts)
+        lengths = np.asarray(seg.lengths)
+        labels = np.asarray(seg.labels)
+        nseg = np.asarray(seg.n_segments)
+        scores = np.asarray(seg.score)
+        rows = []
+        for s in range(self.n_real):
+            for k in range(int(nseg[s])):
+                rows.append((s, int(starts[s, k]), int(lengths[s, k]), int(labels[s, k])))
+        return np.asarray(rows, dtype=np.int64).reshape(-1, 4), float(scores[: self.n_real].sum())
+
+    def objective(
+        self,
+        tex: Texton,
+        M: np.ndarray,
+        pi: np.ndarray,
+        segs: Segs,
+        log_d: np.ndarray | None = None,
+    ) -> float:
+        """log P(Y, segmentation | model): segment scores plus initial/transition (and
+        duration) terms."""
+        n = len(segs)
+        cap = _capacity(n)
+        rows = np.zeros((cap, 4), dtype=np.int64)
+        rows[:, 2] = 2  # padding rows: a valid 2-frame segment, weight 0
+        rows[:n] = segs
+        w = np.zeros(cap)
+        w[:n] = 1.0
+        tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)
+        seg_ll = float(_rows_score(tex, self.Y, jnp.asarray(rows), jnp.asarray(w, self.Y.dtype)))
+        log_M, log_pi = np.log(M), np.log(pi)
+        total = seg_ll
+        if log_d is not None:
+            total += float(log_d[segs[:, 3], segs[:, 2] - self.config.tmin].sum())
+        for s in range(self.n_real):
+            lab = segs[segs[:, 0] == s, 3]
+            total += float(log_pi[lab[0]] + log_M[lab[:-1], lab[1:]].sum())
+        return total
+
+
+def _em(
+    run: _Runner,
+    fm: FeatureMap | None,
+    config: LearnConfig,
+    threshold: float,
+    segs: Segs,
+    verbose: bool,
+    callback: Callable[[dict[str, Any]], None] | None,
+    t0: float,
+) -> MotionTexture:
+    ys = run.ys
+    n_frames = sum(y.shape[0] for y in ys)
+    segs, _ = _relabel(segs)
+    history: list[tuple[float, float]] = []
+    best: tuple[float, Texton, np.ndarray, np.ndarray, Segs, np.ndarray | None] | None = None
+    for it in range(config.max_iter + 1):
+        r = run
+        n_t = int(segs[:, 3].max()) + 1
+        tex, M, pi = r.m_step(segs, n_t)
+        log_d = r.durations(segs, n_t)
+        obj_m = r.objective(tex, M, pi, segs, log_d)
+        new_segs, obj_e = r.e_step(tex, M, pi, log_d)
+        # pruning: textons with fewer than min_segments segments are removed from the model
+        # (M, π renormalised) and every clip is segmented again by the others, until none is
+        # left; the model and segmentation stay complete and consistent
+        n_pruned = 0
+        while (prune := _underused(new_segs, config.min_segments)).size:
+            keep = np.setdiff1d(np.arange(M.shape[0]), prune)
+            tex, M, pi = _keep_textons(tex, M, pi, keep)
+            log_d = None if log_d is None else log_d[keep]
+            new_segs, obj_e = r.e_step(tex, M, pi, log_d)
+            n_pruned += prune.size
+        lab_old, _ = _masks(segs, run.n_real, run.T)
+        lab_new, _ = _masks(new_segs, run.n_real, run.T)
+        changed = int(np.sum(lab_old != lab_new))  # frames whose texton changed
+        history.append((obj_m, obj_e))
+        if best is None or obj_e > best[0]:
+            best = (obj_e, tex, M, pi, new_segs, log_d)
+        info = {
+            "iteration": it,
+            "n_textons": n_t,
+            "pruned": n_pruned,
+            "objective_m": obj_m,
+            "objective_e": obj_e,
+            "changed": changed,
+            "seconds": time.perf_counter() - t0,
+        }
+        if verbose:
+            pruned = f"  pruned {n_pruned} texton(s)" if n_pruned else ""
+            print(
+                f"[mtex learn] iter {it:2d}  textons {n_t:3d}  objective/frame "
+                f"{obj_m / n_frames:9.4f} (M) {obj_e / n_frames:9.4f} (E)  "
+                f"frames relabelled {changed:6d}  {info['seconds']:6.1f} s{pruned}",
+                flush=True,
+            )
+        if callback is not None:
+            callback(info)
+        gain = obj_e - history[-2][1] if len(history) > 1 else np.inf
+        converged = changed == 0 or gain < config.tol * n_frames
+        # after a pruning the remaining textons are refitted to their new segments first
+        if it == config.max_iter or (converged and n_pruned == 0):
+            break
+        segs, _ = _relabel(new_segs)
+
+    assert best is not None
+    _, tex, M, pi, final_segs, log_d = best
+    tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)  # drop the capacity padding
+    used = np.unique(final_segs[:, 3])
+    if len(used) < M.shape[0]:  # a texton that lost all its segments: remove it
+        tex, M, pi = _keep_textons(tex, M, pi, used)
+        log_d = None if log_d is None else log_d[used]
+        final_segs, _ = _relabel(final_segs)
+    key = np.stack([np.stack([ys[s][b], ys[s][b + 1]]) for s, b, _, _ in final_segs])
+    return MotionTexture(
+        textons=tex,
+        M=jnp.asarray(M),
+        pi=jnp.asarray(pi),
+        key_poses=jnp.asarray(key),
+        key_pose_labels=jnp.asarray(final_segs[:, 3]),
+        segment_lengths=jnp.asarray(final_segs[:, 2]),
+        segments=jnp.asarray(final_segs),
+        history=jnp.asarray(np.asarray(history)),
+        feature_map=fm,
+        config=config,
+        threshold=threshold,
+        log_durations=None if log_d is None else jnp.asarray(log_d),
+    )

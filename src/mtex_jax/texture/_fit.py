@@ -19,7 +19,7 @@ from ._stats import (
     _frame_stats_impl,
     _subspace_impl,
 )
-from ._texton import Texton, _companion
+from ._texton import OBSERVATION_MODELS, Texton, _companion
 
 # --------------------------------------------------------------------------------------------
 # Solve: statistics -> texton
@@ -34,6 +34,8 @@ def texton_from_stats(
     q_floor: float = 1e-6,
     rho_max: float | None = None,
     init_prior_weight: float = 4.0,
+    observation: str = "paper",
+    sigma2_floor: float = 1e-6,
 ) -> Texton:
     """Closed-form texton from summed statistics (SPEC §2 step 3, corrected regression).
 
@@ -69,6 +71,18 @@ def texton_from_stats(
     i.e. the start frames pooled with ``κ`` pseudo-samples of the pair distribution; it tends
     to the empirical start distribution when there are many segments and is always PD.
 
+    Residual AR(2) (``observation="residual"``, ``k < D``): with the residual lag Gram
+    ``G_ab = Σ r_{t−a}·r_{t−b} = sum_uu[a, b] − tr(sum_zz block (a, b))`` over the valid
+    triples (``r = (I − C Cᵀ)(y − μ)``, so ``r_s·r_t = u_s·u_t − x_s·x_t``),
+
+    .. code-block:: text
+
+        (a₁, a₂) = G[1:, 1:]⁻¹ G[1:, 0]                      (least squares, same ridge)
+        s_r² = (G00 − 2 aᵀG[1:, 0] + aᵀ G[1:, 1:] a) / (N (D − k))   floored at σ²_floor
+
+    the maximum-likelihood isotropic AR(2) of the residual (projected to spectral radius
+    ``≤ rho_max`` by the same radial scaling). Otherwise ``a = 0`` and ``s_r² = σ²``.
+
     Args:
         subspace: pass-1 result (``μ``, ``C``, ``σ²``, state variances).
         stats: pass-2 sums computed with that subspace.
@@ -76,6 +90,9 @@ def texton_from_stats(
         q_floor: absolute floor added to ``Q`` and ``S0`` (units of ``x²`` = ``y²``), ``> 0``.
         rho_max: optional bound on the companion spectral radius, ``> 0``.
         init_prior_weight: shrinkage pseudo-count ``κ >= 0`` for ``(m0, S0)``.
+        observation: ``"paper"``, ``"residual"`` or ``"full"`` (see :class:`Texton`;
+            ``"full"`` needs ``k = D``).
+        sigma2_floor: floor of the residual innovation variance ``s_r²``.
 
     Returns:
         A single :class:`Texton` in the dtype of the statistics.
@@ -89,7 +106,9 @@ def texton_from_stats(
         raise ValueError(
             f"stats.sum_zz has shape {stats.sum_zz.shape}, expected {(3 * k, 3 * k)} for k={k}"
         )
-    opts = _SolveOptions.make(ridge, q_floor, rho_max, init_prior_weight)
+    opts = _SolveOptions.make(ridge, q_floor, rho_max, init_prior_weight, observation, sigma2_floor)
+    if observation == "full" and k != int(subspace.C.shape[0]):
+        raise ValueError(f"observation='full' needs state_dim = D = {subspace.C.shape[0]}")
     return _texton_from_stats_jit(subspace, stats, opts)
 
 
@@ -98,9 +117,22 @@ class _SolveOptions(eqx.Module):
     q_floor: float = eqx.field(static=True)
     rho_max: float | None = eqx.field(static=True)
     init_prior_weight: float = eqx.field(static=True)
+    observation: str = eqx.field(static=True, default="paper")
+    sigma2_floor: float = eqx.field(static=True, default=1e-6)
 
     @staticmethod
-    def make(ridge: Any, q_floor: Any, rho_max: Any, init_prior_weight: Any) -> _SolveOptions:
+    def make(
+        ridge: Any,
+        q_floor: Any,
+        rho_max: Any,
+        init_prior_weight: Any,
+        observation: Any = "paper",
+        sigma2_floor: Any = 1e-6,
+    ) -> _SolveOptions:
+        if observation not in OBSERVATION_MODELS:
+            raise ValueError(
+                f"observation must be one of {OBSERVATION_MODELS}, got {observation!r}"
+            )
         return _SolveOptions(
             ridge=_check_positive("ridge", ridge, allow_zero=True),
             q_floor=_check_positive("q_floor", q_floor),
@@ -108,6 +140,8 @@ class _SolveOptions(eqx.Module):
             init_prior_weight=_check_positive(
                 "init_prior_weight", init_prior_weight, allow_zero=True
             ),
+            observation=observation,
+            sigma2_floor=_check_positive("sigma2_floor", sigma2_floor),
         )
 
 
@@ -118,6 +152,36 @@ def _project_radius(A1: Array, A2: Array, rho_max: float) -> tuple[Array, Array]
     # tiny safety margin so that rounding in the eigenvalues never leaves rho > rho_max
     s = jnp.where(rho > rho_max, s * (1 - 4 * jnp.finfo(A1.dtype).eps), s)
     return s * A1, (s * s) * A2
+
+
+def _residual_ar(
+    stats: DynamicsStats, k: int, D: int, sigma2: Array, opts: _SolveOptions
+) -> tuple[Array, Array]:
+    """``(res_a (2,), res_s2 ())`` of the residual AR(2) (see :func:`texton_from_stats`)."""
+    dtype = stats.sum_zz.dtype
+    if opts.observation != "residual" or k >= D:
+        return jnp.zeros((2,), dtype), sigma2.astype(dtype)
+    zz = stats.sum_zz
+    tr = jnp.stack(
+        [
+            jnp.stack([jnp.trace(zz[a * k : (a + 1) * k, b * k : (b + 1) * k]) for b in range(3)])
+            for a in range(3)
+        ]
+    )
+    G = _sym(stats.sum_uu - tr)
+    Gp = G[1:, 1:]
+    scale = jnp.trace(Gp) / 2 + jnp.finfo(dtype).tiny
+    eps = jnp.finfo(dtype).eps
+    Gp = Gp + (opts.ridge * scale + 10 * eps * scale) * jnp.eye(2, dtype=dtype)
+    a = jnp.linalg.solve(Gp, G[1:, 0])
+    if opts.rho_max is not None:
+        a1, a2 = _project_radius(a[:1, None], a[1:, None], opts.rho_max)
+        a = jnp.concatenate([a1[0], a2[0]])
+    n = jnp.maximum(stats.n3, 1.0) * (D - k)
+    e2 = G[0, 0] - 2.0 * a @ G[1:, 0] + a @ G[1:, 1:] @ a
+    s2 = jnp.maximum(e2 / n, opts.sigma2_floor)
+    ok = stats.n3 > 0
+    return jnp.where(ok, a, 0.0), jnp.where(ok, s2, sigma2).astype(dtype)
 
 
 def _texton_from_stats_impl(
@@ -173,6 +237,8 @@ def _texton_from_stats_impl(
     S0 = _sym((scat + kappa * (S_tgt + jnp.outer(dm, dm))) / denom_s)
     S0 = jnp.where(denom > 0, S0, jnp.zeros_like(S0)) + q_floor * eye_2k
 
+    D = subspace.C.shape[0]
+    res_a, res_s2 = _residual_ar(stats, k, D, subspace.sigma2, opts)
     return Texton(
         mu=subspace.mu.astype(dtype),
         C=subspace.C.astype(dtype),
@@ -183,6 +249,9 @@ def _texton_from_stats_impl(
         sigma2=subspace.sigma2.astype(dtype),
         m0=m0,
         S0=S0,
+        res_a=res_a,
+        res_s2=res_s2,
+        observation=opts.observation,
     )
 
 
@@ -204,6 +273,7 @@ def fit_texton(
     sigma2_floor: float = 1e-6,
     rho_max: float | None = None,
     init_prior_weight: float = 4.0,
+    observation: str = "paper",
 ) -> Texton:
     """Closed-form fit of one texton on one or several segments (SPEC §2; MT App. B).
 
@@ -227,6 +297,8 @@ def fit_texton(
         sigma2_floor: absolute floor of ``σ²`` (units of ``y²``).
         rho_max: optional bound on the spectral radius of ``[[A1, A2], [I, 0]]``.
         init_prior_weight: shrinkage pseudo-count of the initial-state Gaussian.
+        observation: the observation model, ``"paper"``, ``"residual"`` or ``"full"``
+            (``"full"`` needs ``state_dim = D``); see :class:`Texton`.
 
     Returns:
         A single :class:`Texton` in Y's floating dtype. Differentiable w.r.t. ``Y`` (the
@@ -240,7 +312,9 @@ def fit_texton(
     Y, mask = _check_fit_inputs(Y, mask)
     k = _check_state_dim(state_dim, int(Y.shape[-1]), tuple(Y.shape))
     floor = _check_positive("sigma2_floor", sigma2_floor)
-    opts = _SolveOptions.make(ridge, q_floor, rho_max, init_prior_weight)
+    opts = _SolveOptions.make(ridge, q_floor, rho_max, init_prior_weight, observation, floor)
+    if observation == "full" and k != int(Y.shape[-1]):
+        raise ValueError(f"observation='full' needs state_dim = D = {Y.shape[-1]}, got {k}")
     return _fit_texton_jit(Y, mask, k, floor, opts)
 
 

@@ -1,5 +1,5 @@
 """Per-frame log-density terms of every texton on every frame (SPEC §3): the blocked kernel
-used by learning, and the per-texton kernel used for the initial-state terms."""
+used by learning (the per-texton reference kernel is in ``_frame_terms_ref``)."""
 
 from __future__ import annotations
 
@@ -29,78 +29,11 @@ from ._workers import _check_workers, _n_parts, run_row_blocks
 # --------------------------------------------------------------------------------------------
 
 
-def _terms_single(
-    tex: Texton, Yc: Array, yn: Array, ybar: Array, with_dyn_obs: bool, with_init: bool
-) -> tuple[Array | None, Array | None, Array | None]:
-    """Per-frame terms of one texton on centred frames ``Yc = Y − ȳ`` (``yn = ‖Yc‖²``)."""
-    T, D = Yc.shape
-    k = tex.C.shape[-1]
-    dtype = Yc.dtype
-    tex = jax.tree.map(lambda a: a.astype(dtype), tex)
-    mc = tex.mu - ybar
-    off = mc @ tex.C
-    # one GEMM gives the states and the y·μ term: Yc [C | μ − ȳ]
-    P = Yc @ jnp.concatenate([tex.C, mc[:, None]], axis=1)
-    X = P[:, :k] - off  # x_t = Cᵀ(y_t − μ)
-    dyn = obs = init = None
-    if with_dyn_obs:
-        # whitened dynamics residual w_t = B⁻¹(x_t − A1 x_{t−1} − A2 x_{t−2} − d)
-        Binv = jsl.solve_triangular(tex.B, jnp.eye(k, dtype=dtype), lower=True)
-        G1 = -(Binv @ tex.A1)
-        G2 = -(Binv @ tex.A2)
-        logdet_q = 2.0 * jnp.sum(jnp.log(jnp.diagonal(tex.B)))
-        if T >= 3:
-            W = X[2:] @ Binv.T + X[1:-1] @ G1.T + X[:-2] @ G2.T - Binv @ tex.d
-            dyn_t = -0.5 * (k * _LOG_2PI + logdet_q + jnp.sum(W * W, axis=1))
-            dyn = jnp.concatenate([jnp.zeros((2,), dtype), dyn_t])
-        else:
-            dyn = jnp.zeros((T,), dtype)
-        # ‖r_t‖² = ‖y_t − μ‖² − ‖x_t‖², clamped at 0 (r outside the subspace)
-        r2 = yn - 2.0 * P[:, k] + mc @ mc - jnp.sum(X * X, axis=1)
-        r2 = jnp.maximum(r2, 0.0)
-        n_res = D - k
-        obs = -0.5 * (n_res * (_LOG_2PI + jnp.log(tex.sigma2)) + r2 / tex.sigma2)
-        if n_res == 0:
-            obs = jnp.zeros_like(obs)
-    if with_init:
-        L0 = _psd_cholesky(tex.S0, jnp.zeros((), dtype))
-        L0inv = jsl.solve_triangular(L0, jnp.eye(2 * k, dtype=dtype), lower=True)
-        if T >= 2:
-            # L0⁻¹([x_b; x_{b+1}] − m0) without forming the stacked pairs
-            U = X[:-1] @ L0inv[:, :k].T + X[1:] @ L0inv[:, k:].T - L0inv @ tex.m0
-            logdet0 = 2.0 * jnp.sum(jnp.log(jnp.diagonal(L0)))
-            init_b = -0.5 * (2 * k * _LOG_2PI + logdet0 + jnp.sum(U * U, axis=1))
-            init = jnp.concatenate([init_b, jnp.full((1,), -jnp.inf, dtype)])
-        else:
-            init = jnp.full((T,), -jnp.inf, dtype)
-    return dyn, obs, init
-
-
-def _all_terms_impl(
-    textons: Texton, Y: Array, with_dyn_obs: bool, with_init: bool, chunk: int
-) -> tuple[Array | None, Array | None, Array | None]:
-    Y = _error_if_nonfinite(Y, "Y")
-    dtype = _float_dtype(Y, textons.mu)
-    Y = Y.astype(dtype)
-    ybar = jnp.mean(Y, axis=0)
-    Yc = Y - ybar
-    yn = jnp.sum(Yc * Yc, axis=1)
-
-    def one(tex: Texton) -> tuple[Array | None, Array | None, Array | None]:
-        return _terms_single(tex, Yc, yn, ybar, with_dyn_obs, with_init)
-
-    if not textons.is_stacked:
-        return one(textons)
-    return lax.map(one, textons, batch_size=chunk if chunk > 1 else None)
-
-
-_all_terms_traced = eqx.debug.assert_max_traces(_all_terms_impl, max_traces=None)
-_all_terms_jit = eqx.filter_jit(_all_terms_traced)
-
-
 # Target size of one time block's projections (all textons), in bytes: small enough to stay in
 # the (per-core) L2 cache between the projection GEMM and the passes that re-read it.
 _BLOCK_BYTES = 2 * 2**20
+# Largest state dimension whose sums over the state index are unrolled in the kernel.
+_UNROLL_MAX_K = 16
 
 
 def _block_frames(block_size: Any, textons: Texton, Y: Array) -> int:
@@ -197,6 +130,67 @@ def _init_coords(tex: Texton, U: Array, s: Array) -> dict[str, Array]:
     )
 
 
+def _residual_ar_terms(
+    Yw: Array,
+    Z: Array,
+    s2: Array,
+    a1: Array,
+    a2: Array,
+    res_s2: Array,
+    res_const: Array,
+    mcmc: Array,
+    k: int,
+) -> Array:
+    """Residual AR(2) log-density on frames ``2 … W−1`` of a window, ``(N_t, W − 2)``.
+
+    ``e_t = r_t − a₁ r_{t−1} − a₂ r_{t−2}`` has ``‖e_t‖² = ‖w_t‖² − ‖Cᵀw_t‖²`` with
+    ``w_t = u_t − a₁ u_{t−1} − a₂ u_{t−2}`` (``u = y − μ``). Written with the texton-free
+    differences ``δ₁ = ŷ_t − ŷ_{t−1}``, ``δ₂ = ŷ_{t−1} − ŷ_{t−2}`` of the centred frames ``ŷ``,
+    ``q = 1 − a₁`` and ``c = 1 − a₁ − a₂``,
+
+    .. code-block:: text
+
+        w_t = δ₁ + q δ₂ + c (ŷ_{t−2} − (μ − ȳ))
+        ‖w_t‖² = ‖δ₁‖² + q²‖δ₂‖² + 2q δ₁·δ₂ + 2c (δ₁ + q δ₂)·(ŷ_{t−2} − (μ − ȳ))
+                 + c² ‖ŷ_{t−2} − (μ − ȳ)‖²
+
+    so that only the frame-to-frame differences (small for smooth motion) are squared, not
+    the frames, and the per-texton work is on the ``y·μ`` row and the states ``z`` of ``Z``:
+    ``Cᵀw_t = U diag(s)(z_t − a₁ z_{t−1} − a₂ z_{t−2})``.
+    """
+    d1 = Yw[2:] - Yw[1:-1]
+    d2 = Yw[1:-1] - Yw[:-2]
+    y0 = Yw[:-2]
+    n11 = jnp.sum(d1 * d1, axis=1)
+    n22 = jnp.sum(d2 * d2, axis=1)
+    n12 = jnp.sum(d1 * d2, axis=1)
+    g1 = jnp.sum(d1 * y0, axis=1)
+    g2 = jnp.sum(d2 * y0, axis=1)
+    yn0 = jnp.sum(y0 * y0, axis=1)
+    mk = Z[:, k]
+    q = 1.0 - a1
+    c = 1.0 - a1 - a2
+    cross = g1 + q * g2 - (mk[:, 2:] - mk[:, 1:-1]) - q * (mk[:, 1:-1] - mk[:, :-2])
+    ww = (
+        n11
+        + q * q * n22
+        + 2.0 * q * n12
+        + 2.0 * c * cross
+        + c * c * (yn0 - 2.0 * mk[:, :-2] + mcmc)
+    )
+    v2: Array | float = 0.0
+    if k <= _UNROLL_MAX_K:
+        for j in range(k):
+            v = Z[:, j, 2:] - a1 * Z[:, j, 1:-1] - a2 * Z[:, j, :-2]
+            v2 = v2 + s2[:, j, None] * v * v
+    else:
+        a1_, a2_ = a1[:, :, None], a2[:, :, None]
+        v = Z[:, :k, 2:] - a1_ * Z[:, :k, 1:-1] - a2_ * Z[:, :k, :-2]
+        v2 = jnp.einsum("nj,njt->nt", s2, v * v)
+    e2 = jnp.maximum(ww - v2, 0.0)
+    return -0.5 * (res_const + e2 / res_s2)
+
+
 def _frame_terms_impl(
     textons: Texton,
     Y: Array,
@@ -244,6 +238,10 @@ def _frame_terms_impl(
     obs_const = cw["obs_const"][:, None]
     mcmc = cw["mcmc"][:, None]
     sigma2 = textons.sigma2[:, None]
+    residual = textons.observation == "residual" and D > k
+    ra1, ra2 = textons.res_a[:, 0, None], textons.res_a[:, 1, None]
+    res_s2 = textons.res_s2[:, None]
+    res_const = (D - k) * (_LOG_2PI + jnp.log(res_s2))
     W = min(block + 2, T)
     step = max(W - 2, 1)
     n_blocks = -(-max(T - 2, 1) // step)
@@ -254,11 +252,17 @@ def _frame_terms_impl(
         # all textons at once: (N_t(k+1), D+1) × (W, D+1)ᵀ
         Z = lax.dot_general(P, jnp.concatenate([Yw, ones], axis=1), (((1,), (1,)), ((), ())))
         Z = Z.reshape(n, k + 1, W)
-        # sums over the state index unrolled: each becomes one fused elementwise pass that
-        # reads the (shifted) slices of Z and FZ in place, with no reduction copies
+        # sums over the state index unrolled (k <= _UNROLL_MAX_K): each becomes one fused
+        # elementwise pass that reads the (shifted) slices of Z and FZ in place, with no
+        # reduction copies; for larger k one vectorised reduction each (the unrolled program
+        # would take minutes to compile)
+        unroll = k <= _UNROLL_MAX_K
         x2: Array | float = 0.0
-        for j in range(k):
-            x2 = x2 + s2[:, j, None] * Z[:, j] * Z[:, j]
+        if unroll:
+            for j in range(k):
+                x2 = x2 + s2[:, j, None] * Z[:, j] * Z[:, j]
+        else:
+            x2 = jnp.einsum("nj,njt->nt", s2, Z[:, :k] * Z[:, :k])
         r2 = jnp.maximum(jnp.sum(Yw * Yw, axis=1) - 2.0 * Z[:, k] + mcmc - x2, 0.0)
         obs = -0.5 * (obs_const + r2 / sigma2) if D > k else jnp.zeros((n, W), dtype)
         if W < 2:
@@ -267,19 +271,35 @@ def _frame_terms_impl(
         init = None
         if with_init:  # ‖E0 z_b + E1 z_{b+1} − L0⁻¹m0‖², b = w0 … w0 + W − 2
             u2: Array | float = 0.0
-            for j in range(2 * k):  # rows j < k of E1 are zero
-                u = FZ[:, 2 * k + j, :-1] - init_c[:, j, None]
-                if j >= k:
-                    u = u + FZ[:, 3 * k + j, 1:]
-                u2 = u2 + u * u
+            if unroll:
+                for j in range(2 * k):  # rows j < k of E1 are zero
+                    u = FZ[:, 2 * k + j, :-1] - init_c[:, j, None]
+                    if j >= k:
+                        u = u + FZ[:, 3 * k + j, 1:]
+                    u2 = u2 + u * u
+            else:
+                u = FZ[:, 2 * k : 4 * k, :-1] - init_c[:, :, None]
+                u = u.at[:, k:].add(FZ[:, 4 * k : 5 * k, 1:])
+                u2 = jnp.sum(u * u, axis=1)
             init = -0.5 * (init_const + jnp.asarray(u2))
         if W < 3:
             return None, obs, init
         w2: Array | float = 0.0
-        for j in range(k):
-            w = Z[:, j, 2:] + FZ[:, j, 1:-1] + FZ[:, k + j, :-2] - e[:, j, None]
-            w2 = w2 + w * w
-        return -0.5 * (dyn_const + w2), obs, init
+        if unroll:
+            for j in range(k):
+                w = Z[:, j, 2:] + FZ[:, j, 1:-1] + FZ[:, k + j, :-2] - e[:, j, None]
+                w2 = w2 + w * w
+        else:
+            w = Z[:, :k, 2:] + FZ[:, :k, 1:-1] + FZ[:, k : 2 * k, :-2] - e[:, :, None]
+            w2 = jnp.sum(w * w, axis=1)
+        dyn_w = -0.5 * (dyn_const + w2)
+        if residual:
+            dyn_w = (
+                dyn_w
+                + _residual_ar_terms(Yw, Z, s2, ra1, ra2, res_s2, res_const, mcmc, k)
+                - obs[:, 2:]
+            )
+        return dyn_w, obs, init
 
     def body(i: Array, carry: tuple[Array, ...]) -> tuple[Array, ...]:
         dyn, obs, *init = carry
@@ -324,6 +344,15 @@ def frame_terms(
                     ‖r_t‖² = max(‖y_t − μ‖² − ‖x_t‖², 0)
 
     (``r_t`` is the residual outside the texton's subspace; ``obs = 0`` when ``k = D``.)
+    For a ``"residual"`` texton (:class:`Texton`) the residual of frames ``t >= b + 2`` is
+    scored by its AR(2) instead of white noise, and the difference goes into ``dyn``:
+
+    .. code-block:: text
+
+        dyn[i, t] += log N(e_t; 0, s_r² I_{D−k}) − obs[i, t],   e_t = r_t − a₁ r_{t−1} − a₂ r_{t−2}
+
+    so that a segment's score ``init(b) + Σ_{b+2..e} dyn + Σ_{b..e} obs`` keeps its prefix-sum
+    form: white noise on its first two frames, the AR(2) on the others.
 
     Implementation (default): each texton's state is used in whitened coordinates
     ``z_t = diag(s)⁻¹ Uᵀ x_t`` from the SVD ``B = U diag(s) Vᵀ``, in which the whitened
@@ -383,45 +412,3 @@ def frame_terms(
     if single:
         return dyn[0], obs[0]
     return dyn, obs
-
-
-def frame_terms_per_texton(
-    textons: Texton, Y: ArrayLike, *, chunk_size: int = 1
-) -> tuple[Float[Array, "*n T"], Float[Array, "*n T"]]:
-    """:func:`frame_terms` by the per-texton algorithm: ``lax.map`` over textons,
-    ``chunk_size`` per step; each texton projects all frames with one GEMM and forms
-    ``B⁻¹(x_t − A1 x_{t−1} − A2 x_{t−2} − d)`` with three ``k × k`` GEMMs. Slower than the
-    blocked kernel; an independent implementation of the same formulas (a test reference,
-    exported through ``mtex_jax.internal``)."""
-    textons = _check_texton("textons", textons)
-    Y = _check_obs("Y", Y, textons.obs_dim)
-    dyn, obs, _ = _all_terms_jit(
-        textons, Y, True, False, _check_positive_int("chunk_size", chunk_size)
-    )
-    assert dyn is not None and obs is not None
-    return dyn, obs
-
-
-def init_terms(textons: Texton, Y: ArrayLike, *, chunk_size: int = 1) -> Float[Array, "*n T"]:
-    """Initial-state log-density of a segment starting at each frame (SPEC §3).
-
-    .. code-block:: text
-
-        init[i, b] = log N([x_b; x_{b+1}]; m0_i, S0_i)    for b <= T − 2
-        init[i, T−1] = −inf                               (no second frame)
-
-    Args:
-        textons: a stack of ``N_t`` textons (or a single texton).
-        Y: observations ``(T, D)``.
-        chunk_size: textons vectorised per ``lax.map`` step (static).
-
-    Returns:
-        ``(N_t, T)`` (``(T,)`` for a single texton).
-    """
-    textons = _check_texton("textons", textons)
-    Y = _check_obs("Y", Y, textons.obs_dim)
-    _, _, init = _all_terms_jit(
-        textons, Y, False, True, _check_positive_int("chunk_size", chunk_size)
-    )
-    assert init is not None
-    return init

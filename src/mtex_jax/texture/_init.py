@@ -76,6 +76,11 @@ class _Bank:
         return self._stack
 
 
+# Greedy init fits a texton on one window of tmin frames; more state dimensions than the
+# paper's 12–15 would only fit that window's noise. EM refits every texton at the full k.
+_INIT_STATE_DIM_MAX = 15
+
+
 def greedy_init(
     ys: Sequence[np.ndarray], config: LearnConfig, threshold: float, *, smooth: int = 3
 ) -> tuple[Segs, int]:
@@ -87,11 +92,14 @@ def greedy_init(
     frame while that texton's prediction error (averaged over the last ``smooth`` frames) stays
     at most ``threshold`` (never beyond ``tmax``, and never leaving a remainder that cannot be
     segmented). The error of frame ``t`` is ``‖y_t − μ − C(A1 x_{t−1} + A2 x_{t−2} + d)‖² / D``.
+    The textons of this stage are the paper's with ``k = min(state_dim, 15)``: one window of
+    ``tmin`` frames supports no more; EM refits every texton at the full ``state_dim``.
 
     Returns:
         ``(segments, n_textons)``; segments as rows ``(seq, start, length, label)``.
     """
     tmin = config.tmin
+    k_state = config.state_dim if config.state_dim is not None else _INIT_STATE_DIM_MAX
     rows: list[tuple[int, int, int, int]] = []
     bank = _Bank()
     for s, y in enumerate(ys):
@@ -112,7 +120,7 @@ def greedy_init(
                 label = bank.add(
                     fit_texton(
                         win,
-                        state_dim=config.state_dim,
+                        state_dim=min(_INIT_STATE_DIM_MAX, k_state),
                         ridge=config.ridge,
                         q_floor=config.q_floor,
                         sigma2_floor=config.sigma2_floor,

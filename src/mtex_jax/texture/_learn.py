@@ -13,35 +13,21 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
 
 from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
-from ._em import (
-    _capacity,
-    _fit_all,
-    _keep_textons,
-    _masks,
-    _pad,
-    _padded_logs,
-    _relabel,
-    _rows_score,
-    _transitions,
-    _underused,
-)
-from ._fit import _SolveOptions
-from ._init import Segs, _feasible, greedy_init, threshold_for_textons
+from ._em import _em, _keep_textons, _Runner
+from ._init import _feasible, greedy_init, threshold_for_textons
 from ._model import MotionTexture
-from ._segment import _check_lengths, _segment_batch
-from ._texton import Texton
+from ._segment import _check_lengths
+from ._select import choose_state_dim, n_params
 
 
 def _check_data(
@@ -95,114 +81,40 @@ def _check_data(
             "learn: the clip does not move (every observation channel is constant in every "
             "clip); there is no motion to learn"
         )
-    if config.state_dim > dim:
+    if config.state_dim is not None and config.state_dim > dim:
         raise ValueError(
             f"learn: state_dim = {config.state_dim} exceeds the observation dimension {dim}"
         )
+    if config.observation == "full" and config.state_dim not in (None, dim):
+        raise ValueError(
+            f"learn: observation='full' has state_dim = D = {dim}, got {config.state_dim}"
+        )
     return ys, fm, motions
+
+
+def _resolve_state_dim(ys: list[np.ndarray], config: LearnConfig, verbose: bool) -> LearnConfig:
+    """The config with a concrete ``state_dim``: ``D`` for ``"full"``, else by BIC if unset."""
+    D = ys[0].shape[1]
+    if config.observation == "full":
+        return dataclasses.replace(config, state_dim=D)
+    if config.state_dim is not None:
+        return config
+    if D == 1:
+        return dataclasses.replace(config, state_dim=1)
+    k, table = choose_state_dim(ys, config.observation, ridge=config.ridge)
+    if verbose:
+        bics = ", ".join(f"{int(r['k'])}: {r['bic']:.4g}" for r in table)
+        print(f"[mtex learn] state dimension by BIC: k = {k}  ({bics})", flush=True)
+    # k = D leaves no residual: the texton is the "full" one
+    return dataclasses.replace(
+        config, state_dim=k, observation="full" if k == D else config.observation
+    )
 
 
 # ---------------------------------------------------------------------------------------------
 # EM
 # ---------------------------------------------------------------------------------------------
-class _Runner:
-    """Padded, optionally sharded data and the jitted M- and E-steps."""
-
-    def __init__(self, ys: list[np.ndarray], config: LearnConfig) -> None:
-        self.ys = ys
-        self.config = config
-        self.n_real = len(ys)
-        devices = jax.devices()
-        n_dev = len(devices) if config.shard else 1
-        n_seq = -(-self.n_real // n_dev) * n_dev
-        ypad, nf = _pad(ys, n_seq)
-        self.T = ypad.shape[1]
-        self.n_seq = n_seq
-        self.sharding = None
-        if n_dev > 1:
-            mesh = jax.sharding.Mesh(np.asarray(devices), ("seq",))
-            self.sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seq"))
-        self.Y = self._put(ypad)
-        self.nf = self._put(nf)
-        self.opts = _SolveOptions.make(
-            config.ridge, config.q_floor, config.rho_max, config.init_prior_weight
-        )
-        self.tmax = self.T if config.tmax is None else config.tmax
-
-    def _put(self, a: np.ndarray) -> Array:
-        if self.sharding is None:
-            return jnp.asarray(a)
-        return jax.device_put(a, self.sharding)
-
-    def m_step(self, segs: Segs, n_textons: int) -> tuple[Texton, np.ndarray, np.ndarray]:
-        """Fit all textons; the stack is padded to a power of two (slots past ``n_textons``
-        are unused) so that a changing number of textons recompiles rarely."""
-        n = len(segs)
-        cap = _capacity(n)
-        rows = np.zeros((cap, 4), dtype=np.int64)
-        rows[:n] = segs
-        valid = np.arange(cap) < n
-        tex = _fit_all(
-            self.Y,
-            jnp.asarray(rows),
-            jnp.asarray(valid),
-            _capacity(n_textons),
-            self.tmax,
-            self.config.state_dim,
-            float(self.config.sigma2_floor),
-            self.opts,
-        )
-        M, pi = _transitions(segs, n_textons, self.config.pseudo_count)
-        return tex, M, pi
-
-    def e_step(self, tex: Texton, M: np.ndarray, pi: np.ndarray) -> tuple[Segs, float]:
-        # only the real textons: the capacity padding of the M-step would double the work
-        # (N_t changes rarely, so the extra compilations are few)
-        tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)
-        log_M, log_pi = _padded_logs(M, pi, tex.n_textons)
-        seg = _segment_batch(
-            tex,
-            jnp.asarray(log_M, self.Y.dtype),
-            jnp.asarray(log_pi, self.Y.dtype),
-            self.Y,
-            self.nf,
-            self.config.tmin,
-            self.tmax,
-        )
-        starts = np.asarray(seg.starts)
-        lengths = np.asarray(seg.lengths)
-        labels = np.asarray(seg.labels)
-        nseg = np.asarray(seg.n_segments)
-        scores = np.asarray(seg.score)
-        rows = []
-        for s in range(self.n_real):
-            for k in range(int(nseg[s])):
-                rows.append((s, int(starts[s, k]), int(lengths[s, k]), int(labels[s, k])))
-        return np.asarray(rows, dtype=np.int64).reshape(-1, 4), float(scores[: self.n_real].sum())
-
-    def objective(self, tex: Texton, M: np.ndarray, pi: np.ndarray, segs: Segs) -> float:
-        """log P(Y, segmentation | model): segment scores plus initial/transition terms."""
-        n = len(segs)
-        cap = _capacity(n)
-        rows = np.zeros((cap, 4), dtype=np.int64)
-        rows[:, 2] = 2  # padding rows: a valid 2-frame segment, weight 0
-        rows[:n] = segs
-        w = np.zeros(cap)
-        w[:n] = 1.0
-        tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)
-        seg_ll = float(_rows_score(tex, self.Y, jnp.asarray(rows), jnp.asarray(w, self.Y.dtype)))
-        log_M, log_pi = np.log(M), np.log(pi)
-        total = seg_ll
-        for s in range(self.n_real):
-            lab = segs[segs[:, 0] == s, 3]
-            total += float(log_pi[lab[0]] + log_M[lab[:-1], lab[1:]].sum())
-        return total
-
-
-def _n_params(n_t: int, D: int, k: int) -> int:
-    per = D + (D * k - k * (k + 1) // 2) + 2 * k * k + k + k * (k + 1) // 2 + 1 + 2 * k
-    per += k * (2 * k + 1)
-    return n_t * per + n_t * (n_t - 1) + n_t - 1
+_PAD_E_STEP = 16
 
 
 def learn(
@@ -241,6 +153,7 @@ def learn(
         raise TypeError(f"config must be a LearnConfig, got {type(config).__name__}")
     ys, fm, _ = _check_data(data, config)
     _check_lengths(config.tmin, config.tmax, max(y.shape[0] for y in ys))
+    config = _resolve_state_dim(ys, config, verbose)
     run = _Runner(ys, config)
     if config.threshold is None and config.n_textons is None and config.bic_thresholds:
         _, table, models = _bic(run, fm, config, config.bic_thresholds, verbose, callback)
@@ -261,90 +174,73 @@ def learn(
             f"segments, threshold {threshold:.4g}, {time.perf_counter() - t0:.1f} s",
             flush=True,
         )
-    return _em(run, fm, config, threshold, segs, verbose, callback, t0)
+    model = _em(run, fm, config, threshold, segs, verbose, callback, t0)
+    if config.selection == "bic":
+        model = _backward_bic(run, fm, config, model, verbose, callback)
+    return model
 
 
-def _em(
+def _model_bic(model: MotionTexture, n_frames: int) -> float:
+    cfg = model.config
+    assert cfg.state_dim is not None
+    ll = float(np.asarray(model.history)[:, 1].max())
+    p = n_params(model.n_textons, model.obs_dim, cfg.state_dim, cfg.observation, cfg.durations)
+    return -2 * ll + p * math.log(n_frames)
+
+
+def _backward_bic(
     run: _Runner,
     fm: FeatureMap | None,
     config: LearnConfig,
-    threshold: float,
-    segs: Segs,
+    model: MotionTexture,
     verbose: bool,
     callback: Callable[[dict[str, Any]], None] | None,
-    t0: float,
 ) -> MotionTexture:
-    ys = run.ys
-    n_frames = sum(y.shape[0] for y in ys)
-    segs, _ = _relabel(segs)
-    history: list[tuple[float, float]] = []
-    best: tuple[float, Texton, np.ndarray, np.ndarray, Segs] | None = None
-    for it in range(config.max_iter + 1):
-        n_t = int(segs[:, 3].max()) + 1
-        tex, M, pi = run.m_step(segs, n_t)
-        obj_m = run.objective(tex, M, pi, segs)
-        new_segs, obj_e = run.e_step(tex, M, pi)
-        # pruning: textons with fewer than min_segments segments are removed from the model
-        # (M, π renormalised) and every clip is segmented again by the others, until none is
-        # left; the model and segmentation stay complete and consistent
-        n_pruned = 0
-        while (prune := _underused(new_segs, config.min_segments)).size:
-            tex, M, pi = _keep_textons(tex, M, pi, np.setdiff1d(np.arange(M.shape[0]), prune))
-            new_segs, obj_e = run.e_step(tex, M, pi)
-            n_pruned += prune.size
-        lab_old, _ = _masks(segs, run.n_real, run.T)
-        lab_new, _ = _masks(new_segs, run.n_real, run.T)
-        changed = int(np.sum(lab_old != lab_new))  # frames whose texton changed
-        history.append((obj_m, obj_e))
-        if best is None or obj_e > best[0]:
-            best = (obj_e, tex, M, pi, new_segs)
-        info = {
-            "iteration": it,
-            "n_textons": n_t,
-            "pruned": n_pruned,
-            "objective_m": obj_m,
-            "objective_e": obj_e,
-            "changed": changed,
-            "seconds": time.perf_counter() - t0,
-        }
+    """Backward elimination by BIC: drop the texton with the fewest segments and segment the
+    clips again by the others; if ``BIC = −2 log P(Y, H) + p log n`` of that segmentation under
+    the remaining textons (a lower bound of the log-likelihood after refitting) is lower, rerun
+    EM (at most 5 iterations) from it and continue, else stop."""
+    n = sum(y.shape[0] for y in run.ys)
+    best, best_bic = model, _model_bic(model, n)
+    cap = 1 << max(0, (best.n_textons - 1).bit_length())
+    run.min_cap = cap if cap <= 16 else 1
+    short = dataclasses.replace(config, max_iter=min(config.max_iter, 5))
+    while best.n_textons > 1:
+        t0 = time.perf_counter()
+        segs = np.asarray(best.segments)
+        counts = np.bincount(segs[:, 3], minlength=best.n_textons)
+        frames = np.bincount(segs[:, 3], weights=segs[:, 2], minlength=best.n_textons)
+        drop = int(np.lexsort((frames, counts))[0])
+        keep = np.setdiff1d(np.arange(best.n_textons), [drop])
+        tex, M, pi = _keep_textons(best.textons, np.asarray(best.M), np.asarray(best.pi), keep)
+        log_d = None if best.log_durations is None else np.asarray(best.log_durations)[keep]
+        segs, score = run.e_step(tex, M, pi, log_d)
+        cfg = best.config
+        assert cfg.state_dim is not None
+        p = n_params(len(keep), best.obs_dim, cfg.state_dim, cfg.observation, cfg.durations)
+        if -2 * score + p * math.log(n) >= best_bic:  # not even before refitting: stop
+            if verbose:
+                print(
+                    f"[mtex learn] BIC selection: keep {best.n_textons} textons "
+                    f"(BIC {best_bic:.6g}; without texton {drop}, before refitting: "
+                    f"{-2 * score + p * math.log(n):.6g})",
+                    flush=True,
+                )
+            break
+        cand = _em(run, fm, short, best.threshold, segs, False, callback, t0)
+        cand = dataclasses.replace(cand, config=config) if cand.config != config else cand
+        b = _model_bic(cand, n)
         if verbose:
-            pruned = f"  pruned {n_pruned} texton(s)" if n_pruned else ""
             print(
-                f"[mtex learn] iter {it:2d}  textons {n_t:3d}  objective/frame "
-                f"{obj_m / n_frames:9.4f} (M) {obj_e / n_frames:9.4f} (E)  "
-                f"frames relabelled {changed:6d}  {info['seconds']:6.1f} s{pruned}",
+                f"[mtex learn] BIC selection: {best.n_textons} textons {best_bic:.6g}, "
+                f"{cand.n_textons} textons {b:.6g}  {time.perf_counter() - t0:.1f} s",
                 flush=True,
             )
-        if callback is not None:
-            callback(info)
-        gain = obj_e - history[-2][1] if len(history) > 1 else np.inf
-        converged = changed == 0 or gain < config.tol * n_frames
-        # after a pruning the remaining textons are refitted to their new segments first
-        if it == config.max_iter or (converged and n_pruned == 0):
+        if b >= best_bic:
             break
-        segs, _ = _relabel(new_segs)
-
-    assert best is not None
-    _, tex, M, pi, final_segs = best
-    tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)  # drop the capacity padding
-    used = np.unique(final_segs[:, 3])
-    if len(used) < M.shape[0]:  # a texton that lost all its segments: remove it
-        tex, M, pi = _keep_textons(tex, M, pi, used)
-        final_segs, _ = _relabel(final_segs)
-    key = np.stack([np.stack([ys[s][b], ys[s][b + 1]]) for s, b, _, _ in final_segs])
-    return MotionTexture(
-        textons=tex,
-        M=jnp.asarray(M),
-        pi=jnp.asarray(pi),
-        key_poses=jnp.asarray(key),
-        key_pose_labels=jnp.asarray(final_segs[:, 3]),
-        segment_lengths=jnp.asarray(final_segs[:, 2]),
-        segments=jnp.asarray(final_segs),
-        history=jnp.asarray(np.asarray(history)),
-        feature_map=fm,
-        config=config,
-        threshold=threshold,
-    )
+        best, best_bic = cand, b
+    run.min_cap = 1
+    return best
 
 
 def _bic(
@@ -364,7 +260,8 @@ def _bic(
         segs, _ = greedy_init(run.ys, config, float(th))
         model = _em(run, fm, config, float(th), segs, False, callback, t0)
         ll = float(np.asarray(model.history)[:, 1].max())
-        p = _n_params(model.n_textons, D, config.state_dim)
+        assert config.state_dim is not None
+        p = n_params(model.n_textons, D, config.state_dim, config.observation, config.durations)
         row = {
             "threshold": float(th),
             "n_textons": model.n_textons,
@@ -403,6 +300,7 @@ def bic_select(
         ``loglik``, ``params``, ``bic``).
     """
     ys, fm, _ = _check_data(data, config)
+    config = _resolve_state_dim(ys, config, verbose)
     run = _Runner(ys, config)
     th, table, _ = _bic(run, fm, config, thresholds, verbose, None)
     return th, table

@@ -37,7 +37,9 @@ def segment_log_likelihood(texton: Texton, Y_segment: ArrayLike) -> Float[Array,
                        + Σ_{t=b+2..e} log N(x_t; A1 x_{t−1} + A2 x_{t−2} + d, Q)
                        + Σ_{t=b..e}   log N(r_t; 0, σ² I_{D−k})
 
-    with ``x_t = Cᵀ(y_t − μ)`` and the explicit residual ``r_t = (y_t − μ) − C x_t``
+    (for a ``"residual"`` texton the residual terms of ``t >= b+2`` are
+    ``log N(r_t − a₁ r_{t−1} − a₂ r_{t−2}; 0, s_r² I_{D−k})`` instead) with
+    ``x_t = Cᵀ(y_t − μ)`` and the explicit residual ``r_t = (y_t − μ) − C x_t``
     (triangular solves with ``B`` and ``chol(S0)``). This is the reference for
     :class:`SegmentScorer`; it handles one texton (``jax.vmap`` it for a stack).
 
@@ -72,6 +74,14 @@ def _segment_ll_impl(tex: Texton, Y: Array) -> Array:
     if Y.shape[0] > 2:
         res = X[2:] - X[1:-1] @ tex.A1.T - X[:-2] @ tex.A2.T - tex.d
         ll_dyn = jnp.sum(_gauss_logpdf_chol(res, tex.B))
+        if tex.observation == "residual" and D > k:
+            # frames 3.. of the residual by its AR(2) instead of white noise
+            r2 = jnp.sum(Rres * Rres, axis=1)[2:]
+            white = -0.5 * ((D - k) * (_LOG_2PI + jnp.log(tex.sigma2)) + r2 / tex.sigma2)
+            E = Rres[2:] - tex.res_a[0] * Rres[1:-1] - tex.res_a[1] * Rres[:-2]
+            e2 = jnp.sum(E * E, axis=1)
+            ar = -0.5 * ((D - k) * (_LOG_2PI + jnp.log(tex.res_s2)) + e2 / tex.res_s2)
+            ll_dyn = ll_dyn + jnp.sum(ar - white)
     return ll_init + ll_dyn + ll_obs
 
 
@@ -109,6 +119,11 @@ def exact_log_likelihood(texton: Texton, Y_segment: ArrayLike) -> Float[Array, "
         Scalar log-likelihood.
     """
     texton = _check_texton("texton", texton, stacked=False)
+    if texton.observation == "residual":
+        raise ValueError(
+            "exact_log_likelihood is the Kalman likelihood of the paper's model (white "
+            "observation noise); a 'residual' texton has no such form"
+        )
     Y = _check_obs("Y_segment", Y_segment, texton.obs_dim, min_len=2)
     return _exact_ll_jit(texton, Y)
 

@@ -42,6 +42,8 @@ class MotionTexture(eqx.Module):
         history: ``(n_iter, 2)`` per EM iteration: objective after the M-step and after the
             E-step (log-likelihood of the segmentation).
         feature_map: the :class:`FeatureMap` of the training clips (``None`` for raw arrays).
+        log_durations: ``(N_t, tmax − tmin + 1)`` log-probabilities of each texton's segment
+            lengths ``tmin … tmax`` (``LearnConfig.durations``), or ``None``: flat (the paper).
         config: the :class:`LearnConfig` (static).
         threshold: the greedy-initialisation threshold used (static).
     """
@@ -57,6 +59,7 @@ class MotionTexture(eqx.Module):
     feature_map: FeatureMap | None
     config: LearnConfig = eqx.field(static=True)
     threshold: float = eqx.field(static=True)
+    log_durations: Float[Array, "n L"] | None = None
 
     def __check_init__(self) -> None:
         n = self.textons.n_textons if self.textons.is_stacked else 1
@@ -69,6 +72,16 @@ class MotionTexture(eqx.Module):
             raise ValueError("MotionTexture.key_poses must have shape (n_seg, 2, D)")
         if np.shape(self.segments) != (s, 4) or np.shape(self.segment_lengths) != (s,):
             raise ValueError("MotionTexture.segments / segment_lengths disagree with key poses")
+        if self.log_durations is not None:
+            tmax = self.config.tmax
+            if tmax is None:
+                raise ValueError("MotionTexture.log_durations need a finite config.tmax")
+            want = (n, tmax - self.config.tmin + 1)
+            if np.shape(self.log_durations) != want:
+                raise ValueError(
+                    f"MotionTexture.log_durations must have shape {want}, "
+                    f"got {np.shape(self.log_durations)}"
+                )
 
     @property
     def n_textons(self) -> int:
@@ -116,6 +129,7 @@ class MotionTexture(eqx.Module):
             y,
             self.config.tmin,
             self.config.tmax,
+            log_durations=self.log_durations,
         )
         return float(ll) / (y.shape[0] if per_frame else 1)
 
@@ -137,6 +151,7 @@ class MotionTexture(eqx.Module):
             y,
             self.config.tmin,
             self.config.tmax,
+            log_durations=self.log_durations,
         )
 
     # ------------------------------------------------------------------ files
@@ -145,6 +160,7 @@ class MotionTexture(eqx.Module):
         arrays: dict[str, Any] = {
             f"texton.{f.name}": np.asarray(getattr(self.textons, f.name))
             for f in dataclasses.fields(self.textons)
+            if f.name != "observation"
         }
         arrays.update(
             M=np.asarray(self.M),
@@ -155,12 +171,17 @@ class MotionTexture(eqx.Module):
             segments=np.asarray(self.segments),
             history=np.asarray(self.history),
         )
+        if self.log_durations is not None:
+            arrays["log_durations"] = np.asarray(self.log_durations)
         meta: dict[str, Any] = {
             "kind": _KIND,
             "format_version": FORMAT_VERSION,
             "config": self.config.to_json_dict(),
             "threshold": self.threshold,
-            "texton_fields": [f.name for f in dataclasses.fields(self.textons)],
+            "texton_fields": [
+                f.name for f in dataclasses.fields(self.textons) if f.name != "observation"
+            ],
+            "observation": self.textons.observation,
             "feature_map": None,
         }
         if self.feature_map is not None:
@@ -194,12 +215,15 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
         missing = [f for f in fields if f"texton.{f}" not in arrays]
         if missing:
             raise ValueError(f"missing arrays {['texton.' + f for f in missing]}")
-        textons = Texton(**{f: jnp.asarray(arrays[f"texton.{f}"]) for f in fields})
+        observation = meta.get("observation", "paper")  # files before the models: paper
+        tf = {f: jnp.asarray(arrays[f"texton.{f}"]) for f in fields}
+        textons = Texton(**tf, observation=observation)  # no res_*: the paper's residual
         fm = None
         if meta.get("feature_map") is not None:
             fa = {k.split(".", 1)[1]: v for k, v in arrays.items() if k.startswith("feature_map.")}
             fm = FeatureMap.from_arrays_json(fa, meta["feature_map"])
-        cfg_d = dict(meta["config"])
+        old = {"observation": "paper", "durations": "flat", "selection": "none"}
+        cfg_d = {**old, **meta["config"]}
         if cfg_d.get("bic_thresholds") is not None:
             cfg_d["bic_thresholds"] = tuple(cfg_d["bic_thresholds"])
         cfg = LearnConfig(**cfg_d)
@@ -213,6 +237,9 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
             segments=jnp.asarray(arrays["segments"]),
             history=jnp.asarray(arrays["history"]),
             feature_map=fm,
+            log_durations=(
+                None if "log_durations" not in arrays else jnp.asarray(arrays["log_durations"])
+            ),
             config=cfg,
             threshold=float(meta["threshold"]),
         )

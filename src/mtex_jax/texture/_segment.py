@@ -152,8 +152,14 @@ def viterbi_segments(
     n_valid: Int[Array, ""],
     tmin: int,
     tmax: int,
+    log_durations: Float[Array, "n L"] | None = None,
 ) -> Segmentation:
     """Globally optimal segmentation of the first ``n_valid`` frames (SPEC §4).
+
+    With duration log-probabilities the segment score becomes
+    ``score_i(b, e) + log p_i(e − b + 1)``; the windowed maximum is then a max-plus product
+    of the buffer window with the reversed duration row (``O(P·(tmax − tmin + 1)·N_t)`` per
+    block, as before).
 
     Args:
         scorer: prefix sums of the textons' per-frame terms over ``T`` (padded) frames.
@@ -161,6 +167,8 @@ def viterbi_segments(
         log_pi: ``(N_t,)`` log initial distribution.
         n_valid: number of real frames ``T_s ≤ T`` (the rest is padding and ignored).
         tmin, tmax: segment length bounds (static), ``3 ≤ tmin ≤ tmax``.
+        log_durations: ``(N_t, tmax − tmin + 1)`` log-probabilities of the lengths
+            ``tmin … tmax`` per texton, or ``None`` (flat: the paper).
 
     Returns:
         the :class:`Segmentation` with ``K = T // tmin + 1`` slots.
@@ -179,9 +187,19 @@ def viterbi_segments(
     # B(b) lives at row tmax + b; the first tmax rows are −inf (starts before frame 0)
     bbuf = jnp.full((tmax + Tp + 1, n_t), neg, dtype).at[tmax].set(b0_all[0] + log_pi)
 
+    if log_durations is not None:
+        # row p + w of a window is the start of a segment of length tmax − w for end s + p
+        dur_rev = jnp.asarray(log_durations, dtype).T[::-1]  # (Wn, N): w -> length tmax − w
+        gather = jnp.arange(P)[:, None] + jnp.arange(Wn)[None, :]  # (P, Wn)
+
+    def windowed_max(win: Array) -> Array:
+        if log_durations is None:
+            return jax.lax.reduce_window(win, neg, jax.lax.max, (Wn, 1), (1, 1), "VALID")
+        return jnp.max(win[gather] + dur_rev[None], axis=1)  # (P, N)
+
     def block(bbuf, s):
         win = jax.lax.dynamic_slice(bbuf, (s + 1, 0), (tmax, n_t))  # b in [s − tmax + 1, s]
-        wmax = jax.lax.reduce_window(win, neg, jax.lax.max, (Wn, 1), (1, 1), "VALID")  # (P, N)
+        wmax = windowed_max(win)  # (P, N)
         v = jax.lax.dynamic_slice(a_all, (s, 0), (P, n_t)) + wmax
         v = jnp.where((s + jnp.arange(P) < T)[:, None], v, neg)
         h = jnp.max(v[:, :, None] + log_M[None], axis=1)  # H(e, i) = max_l V(e, l) + log M[l, i]
@@ -197,11 +215,15 @@ def viterbi_segments(
     score = v_last[i_last]
     K = T // tmin + 1
     r = jnp.arange(tmax)
+    if log_durations is not None:  # (tmax, N): row r = length tmax − r (−inf past tmin)
+        dur_col = jnp.concatenate([dur_rev, jnp.full((tmax - Wn, n_t), neg, dtype)], axis=0)
 
     def back(carry, _):
         # recompute the arg-maxima along the optimal path only (no back-pointer tables)
         e, i, done = carry
         col = jax.lax.dynamic_slice(bbuf[:, i], (e + 1,), (tmax,))  # b = e − tmax + 1 + r
+        if log_durations is not None:  # length tmax − r
+            col = col + dur_col[:, i]
         col = jnp.where(r <= tmax - tmin, col, neg)
         rb = jnp.argmax(col)
         b = e - tmax + 1 + rb
@@ -233,6 +255,7 @@ def segment(
     tmax: int | None = None,
     *,
     n_frames: Int[ArrayLike, "*S"] | None = None,
+    log_durations: Float[ArrayLike, "n L"] | None = None,
 ) -> Segmentation:
     """Optimal segmentation and labelling of ``Y`` by the textons (semi-Markov Viterbi).
 
@@ -245,6 +268,8 @@ def segment(
         tmax: longest segment; ``None`` runs the unbounded (paper-exact) DP.
         n_frames: with batched ``Y``, the real length of each sequence ``(S,)``; default all
             ``T``.
+        log_durations: ``(N_t, tmax − tmin + 1)`` per-texton log-probabilities of the segment
+            lengths ``tmin … tmax`` (needs a finite ``tmax``); ``None``: flat (the paper).
 
     Returns:
         a :class:`Segmentation` (batched with a leading ``S`` for batched input).
@@ -258,12 +283,14 @@ def segment(
         raise ValueError(f"Y must have shape (T, D) or (S, T, D), got {Y.shape}")
     batched = Y.ndim == 3
     T = Y.shape[-2]
+    tmax_given = tmax
     tmin, tmax, log_M, log_pi = _check_dp_inputs(textons, log_M, log_pi, T, tmin, tmax)
+    log_d = _check_durations(log_durations, textons, tmin, tmax_given)
     if not batched:
         if T < tmin:
             raise ValueError(f"sequence has {T} frames, shorter than tmin = {tmin}")
         scorer = segment_scores(textons, Y)
-        return viterbi_segments(scorer, log_M, log_pi, jnp.asarray(T), tmin, tmax)
+        return viterbi_segments(scorer, log_M, log_pi, jnp.asarray(T), tmin, tmax, log_d)
     S = Y.shape[0]
     nf = np.full(S, T) if n_frames is None else np.asarray(n_frames)
     if nf.shape != (S,):
@@ -273,16 +300,39 @@ def segment(
         raise ValueError(
             f"sequence {k} has {int(nf[k])} frames; need tmin = {tmin} <= n_frames <= T = {T}"
         )
-    return _segment_batch(textons, log_M, log_pi, Y, jnp.asarray(nf), tmin, tmax)
+    return _segment_batch(textons, log_M, log_pi, Y, jnp.asarray(nf), tmin, tmax, log_d)
+
+
+def _check_durations(
+    log_durations: ArrayLike | None, textons: Texton, tmin: int, tmax: int | None
+) -> Array | None:
+    """``log_durations`` as an array of shape ``(N_t, tmax − tmin + 1)``, or ``None``."""
+    if log_durations is None:
+        return None
+    if tmax is None:
+        raise ValueError("log_durations need a finite tmax (lengths tmin … tmax)")
+    n_t = textons.n_textons if textons.is_stacked else 1
+    a = jnp.asarray(log_durations)
+    shape = (n_t, tmax - tmin + 1)
+    if a.shape != shape:
+        raise ValueError(
+            f"log_durations must have shape {shape} (textons, lengths {tmin}..{tmax}), "
+            f"got {a.shape}"
+        )
+    if bool(jnp.any(jnp.isnan(a))) or bool(jnp.any(a == jnp.inf)):
+        raise ValueError("log_durations must not contain NaN or +inf")
+    return a
 
 
 @eqx.filter_jit
-def _segment_batch(textons, log_M, log_pi, Y, nf, tmin: int, tmax: int) -> Segmentation:
+def _segment_batch(
+    textons, log_M, log_pi, Y, nf, tmin: int, tmax: int, log_durations=None
+) -> Segmentation:
     if not textons.is_stacked:
         textons = jax.tree.map(lambda a: a[None], textons)
 
     def one(y, n):
         sc = _segment_scores_impl(textons, y)
-        return viterbi_segments(sc, log_M, log_pi, n, tmin, tmax)
+        return viterbi_segments(sc, log_M, log_pi, n, tmin, tmax, log_durations)
 
     return jax.vmap(one)(Y, nf)

@@ -97,6 +97,9 @@ class DynamicsStats(_Summable):
         n_start: ``()`` number of segment starts.
         sum_s: ``(2k,)`` ``Σ s_b`` with ``s_b = [x_b; x_{b+1}]`` at segment starts.
         sum_ss: ``(2k, 2k)`` ``Σ s_b s_bᵀ``.
+        sum_uu: ``(3, 3)`` lag Gram of the centred frames ``u_t = y_t − μ`` over the valid
+            triples, ``sum_uu[a, b] = Σ u_{t−a}·u_{t−b}``; with the traces of the ``sum_zz``
+            blocks it gives the residual's lag Gram (the ``"residual"`` observation model).
     """
 
     n3: Float[Array, ""]
@@ -108,6 +111,7 @@ class DynamicsStats(_Summable):
     n_start: Float[Array, ""]
     sum_s: Float[Array, " k2"]
     sum_ss: Float[Array, "k2 k2"]
+    sum_uu: Float[Array, "3 3"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -248,15 +252,21 @@ def _dynamics_stats_seq(Y: Array, ids: Array, mu: Array, C: Array) -> DynamicsSt
     dtype = Y.dtype
     pair, triple, start = _valid_terms(ids)
     used = (ids >= 0)[:, None]
-    X = jnp.where(used, (Y - mu) @ C, 0.0)
+    U = jnp.where(used, Y - mu, 0.0)
+    X = U @ C
     zero = jnp.zeros((), dtype)
     if T >= 3:
         Z = jnp.concatenate([X[2:], X[1:-1], X[:-2]], axis=1)
         w3 = triple[2:].astype(dtype)
         Zw = Z * w3[:, None]
         n3, sum_z, sum_zz = jnp.sum(w3), jnp.sum(Zw, 0), Zw.T @ Z
+        lags = (U[2:], U[1:-1], U[:-2])
+        sum_uu = jnp.stack(
+            [jnp.stack([jnp.sum(w3 * jnp.sum(a * b, axis=1)) for b in lags]) for a in lags]
+        )
     else:
         n3, sum_z, sum_zz = zero, jnp.zeros((3 * k,), dtype), jnp.zeros((3 * k, 3 * k), dtype)
+        sum_uu = jnp.zeros((3, 3), dtype)
     if T >= 2:
         P = jnp.concatenate([X[:-1], X[1:]], axis=1)  # [x_{t-1}; x_t] for t = 1..T-1
         w2 = pair[1:].astype(dtype)
@@ -278,6 +288,7 @@ def _dynamics_stats_seq(Y: Array, ids: Array, mu: Array, C: Array) -> DynamicsSt
         n_start=n_s,
         sum_s=sum_s,
         sum_ss=sum_ss,
+        sum_uu=sum_uu,
     )
 
 

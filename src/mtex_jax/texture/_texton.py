@@ -10,6 +10,19 @@ A texton ``i`` is the linear dynamic system
 
 with ``C`` a ``(D, k)`` matrix of orthonormal columns and ``Q = B Bᵀ`` (``B`` lower triangular).
 
+The *observation model* (static :attr:`Texton.observation`) says how the part of ``y`` outside
+the state subspace, the residual ``r_t = (I − C Cᵀ)(y_t − μ)``, is scored:
+
+* ``"paper"`` (MT-11): white noise, ``r_t ~ N(0, σ² I_{D−k})`` on every frame;
+* ``"residual"``: the first two frames of a segment as in the paper, then an isotropic AR(2)
+  on the residual, ``r_t = a₁ r_{t−1} + a₂ r_{t−2} + e_t``, ``e_t ~ N(0, s_r² I_{D−k})`` in the
+  residual subspace (``res_a = (a₁, a₂)``, ``res_s2 = s_r²``). The residual of smooth motion
+  is smooth, so its one-step prediction error is far smaller than its variance;
+* ``"full"``: ``k = D`` (no residual): the texton is a full-covariance AR(2) on ``y`` and the
+  texture an autoregressive hidden semi-Markov model.
+
+For ``"paper"`` and ``"full"`` ``res_a = 0`` and ``res_s2 = σ²``.
+
 This module provides
 
 * :class:`Texton` (a single texton or a stack of ``N_t`` textons along a leading axis) and
@@ -63,6 +76,10 @@ class Texton(eqx.Module):
         sigma2: ``(*batch,)`` observation noise variance ``σ²`` (per dimension).
         m0: ``(*batch, 2k)`` mean of the first two states ``[x_1; x_2]``.
         S0: ``(*batch, 2k, 2k)`` covariance of ``[x_1; x_2]``.
+        res_a: ``(*batch, 2)`` AR(2) coefficients ``(a₁, a₂)`` of the residual
+            (``"residual"`` observation model; 0 otherwise).
+        res_s2: ``(*batch,)`` residual innovation variance ``s_r²`` (``σ²`` otherwise).
+        observation: ``"paper"``, ``"residual"`` or ``"full"`` (static; see the module doc).
     """
 
     mu: Float[Array, "*batch D"]
@@ -74,6 +91,36 @@ class Texton(eqx.Module):
     sigma2: Float[Array, "*batch"]
     m0: Float[Array, "*batch k2"]
     S0: Float[Array, "*batch k2 k2"]
+    res_a: Float[Array, "*batch 2"]
+    res_s2: Float[Array, "*batch"]
+    observation: str = eqx.field(static=True)
+
+    def __init__(
+        self,
+        mu: Any,
+        C: Any,
+        A1: Any,
+        A2: Any,
+        d: Any,
+        B: Any,
+        sigma2: Any,
+        m0: Any,
+        S0: Any,
+        res_a: Any = None,
+        res_s2: Any = None,
+        observation: str = "paper",
+    ) -> None:
+        """The fields as given; ``res_a`` and ``res_s2`` default to the paper's white residual
+        (``a = 0``, ``s_r² = σ²``), so textons made before the observation models (and the
+        paper's) need not give them."""
+        self.mu, self.C, self.A1, self.A2, self.d, self.B = mu, C, A1, A2, d, B
+        self.sigma2, self.m0, self.S0 = sigma2, m0, S0
+        if res_a is None:
+            s2 = sigma2 if hasattr(sigma2, "shape") else jnp.asarray(sigma2)
+            res_a = jnp.zeros((*s2.shape, 2), getattr(s2, "dtype", None))
+        self.res_a = res_a
+        self.res_s2 = sigma2 if res_s2 is None else res_s2
+        self.observation = observation
 
     def __check_init__(self) -> None:
         shapes = {name: getattr(getattr(self, name), "shape", None) for name in _TEXTON_FIELDS}
@@ -99,6 +146,8 @@ class Texton(eqx.Module):
             "sigma2": batch,
             "m0": (*batch, 2 * k),
             "S0": (*batch, 2 * k, 2 * k),
+            "res_a": (*batch, 2),
+            "res_s2": batch,
         }
         for name, exp in expected.items():
             got = tuple(shapes[name])  # type: ignore[arg-type]
@@ -109,6 +158,12 @@ class Texton(eqx.Module):
                 )
         if k < 1 or k > D:
             raise ValueError(f"Texton state dimension k={k} must satisfy 1 <= k <= D={D}")
+        if self.observation not in OBSERVATION_MODELS:
+            raise ValueError(
+                f"Texton.observation must be one of {OBSERVATION_MODELS}, got {self.observation!r}"
+            )
+        if self.observation == "full" and k != D:
+            raise ValueError(f"a 'full' texton has k = D; got k={k}, D={D}")
 
     # -- shape information --------------------------------------------------------------------
 
@@ -151,7 +206,10 @@ class Texton(eqx.Module):
         return jax.tree.map(lambda x: x[index], self)
 
 
-_TEXTON_FIELDS = ("mu", "C", "A1", "A2", "d", "B", "sigma2", "m0", "S0")
+_TEXTON_FIELDS = ("mu", "C", "A1", "A2", "d", "B", "sigma2", "m0", "S0", "res_a", "res_s2")
+
+#: The observation models of a texton (see the module doc).
+OBSERVATION_MODELS = ("paper", "residual", "full")
 
 
 def stack_textons(textons: Sequence[Texton]) -> Texton:
@@ -176,6 +234,11 @@ def stack_textons(textons: Sequence[Texton]) -> Texton:
         if t.is_stacked:
             raise ValueError(
                 f"stack_textons: element {j} is already stacked (batch {t.batch_shape})"
+            )
+        if t.observation != first.observation:
+            raise ValueError(
+                f"stack_textons: element {j} has observation model {t.observation!r}, "
+                f"element 0 has {first.observation!r}"
             )
         if (t.obs_dim, t.state_dim) != (first.obs_dim, first.state_dim):
             raise ValueError(
