@@ -19,6 +19,7 @@ from jax.test_util import check_grads
 import mtex_jax as mj
 from mtex_jax import edit as E
 from mtex_jax.metrics import fit_contacts
+from paper_settings import PAPER
 
 FPS = 30.0
 T = 90
@@ -27,7 +28,7 @@ T = 90
 @pytest.fixture(scope="module")
 def tex():
     clips = [mj.load_example(n).resample(FPS) for n in mj.io.example_names()]
-    cfg = mj.LearnConfig(tmin=18, tmax=54, state_dim=6, fps=FPS, threshold=0.3, max_iter=5)
+    cfg = mj.LearnConfig(tmin=18, tmax=54, state_dim=6, fps=FPS, threshold=0.3, max_iter=5, **PAPER)
     return mj.learn(clips, cfg)
 
 
