@@ -44,8 +44,7 @@ clips = [mj.read_bvh(f)[4:] for f in sorted(cmu.glob("*.bvh"))]
 if which == "default":
     cfg = mj.LearnConfig(tmin=60, tmax=180, fps=60.0)
 else:
-    cfg = mj.LearnConfig(tmin=60, tmax=180, fps=60.0, state_dim=12, min_segments=3,
-                         observation="paper", durations="flat", selection="none", rho_max=None)
+    cfg = mj.LearnConfig.paper(tmin=60, tmax=180, fps=60.0, min_segments=3)
 t0 = time.perf_counter()
 tex = mj.learn(clips, cfg)
 jax.block_until_ready(tex.textons.mu)

@@ -62,17 +62,7 @@ TRAIN = ["60_01", "60_02", "60_03", "60_04", "60_05", "60_06", "60_07", "60_09",
 HELD = ["60_12", "60_13", "60_14", "60_15"]
 FPS = 60.0
 # the paper's model as the README used it before issue 16 (its figures are reproduced exactly)
-PAPER_CFG = mj.LearnConfig(
-    tmin=60,
-    tmax=180,
-    state_dim=12,
-    fps=FPS,
-    min_segments=3,
-    observation="paper",
-    durations="flat",
-    selection="none",
-    rho_max=None,
-)
+PAPER_CFG = mj.LearnConfig.paper(tmin=60, tmax=180, fps=FPS, min_segments=3)
 IMPLICIT_FPS = 30.0
 SECONDS = 20.0
 

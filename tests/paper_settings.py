@@ -1,5 +1,15 @@
 """The paper's learning settings (white residual, flat durations, EM's textons kept, no pruning,
-no stability projection): the defaults before issue 16. Tests of the paper's machinery (and
-those whose fixtures need several textons from tiny data) pin them with ``**PAPER``."""
+no stability projection), as ``LearnConfig.paper()`` sets them, without its state dimension.
+Tests of the paper's machinery (and those whose fixtures need several textons from tiny data)
+pin them with ``**PAPER``."""
 
-PAPER = dict(observation="paper", durations="flat", selection="none", min_segments=1, rho_max=None)
+import dataclasses
+
+from mtex_jax import LearnConfig
+
+_DEFAULTS = dataclasses.asdict(LearnConfig())
+PAPER = {
+    k: v
+    for k, v in dataclasses.asdict(LearnConfig.paper()).items()
+    if k != "state_dim" and v != _DEFAULTS[k]
+}

@@ -370,6 +370,15 @@ def test_config_rejects_unknown_models():
         mj.LearnConfig(durations="poisson")
 
 
+def test_paper_config():
+    cfg = mj.LearnConfig.paper(tmin=30, min_segments=3)
+    assert (cfg.observation, cfg.durations, cfg.selection) == ("paper", "flat", "none")
+    assert (cfg.state_dim, cfg.rho_max, cfg.tmin, cfg.min_segments) == (12, None, 30, 3)
+    assert mj.LearnConfig.paper().min_segments == 1
+    with pytest.raises(ValueError, match="observation"):
+        mj.LearnConfig.paper(observation="kalman")
+
+
 def test_float32_smoke():
     ys = [y.astype(np.float32) for y in _clips(3)]
     tex = mj.learn(ys, mj.LearnConfig(tmin=20, tmax=60, max_iter=2))

@@ -124,18 +124,8 @@ def run_demo(
     # the paper's texton model (k = 12, white residual, flat durations): on the salsa clips its
     # zero-noise synthesis is as smooth as the denser default model's (benchmarks/results/
     # quality.md) and it learns several times faster
-    cfg = LearnConfig(
-        tmin=60,
-        tmax=180,
-        state_dim=12,
-        fps=FPS,
-        min_segments=3,
-        threshold=threshold,
-        max_iter=max_iter,
-        observation="paper",
-        durations="flat",
-        selection="none",
-        rho_max=None,
+    cfg = LearnConfig.paper(
+        tmin=60, tmax=180, fps=FPS, min_segments=3, threshold=threshold, max_iter=max_iter
     )
     say(
         f"learning a motion texture: segments of {cfg.tmin}-{cfg.tmax} frames "

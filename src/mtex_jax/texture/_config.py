@@ -5,6 +5,16 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+# the paper's learning settings, the defaults before issue 16 (see LearnConfig.paper)
+_PAPER: dict[str, Any] = dict(
+    state_dim=12,
+    observation="paper",
+    durations="flat",
+    selection="none",
+    min_segments=1,
+    rho_max=None,
+)
+
 
 @dataclasses.dataclass(frozen=True)
 class LearnConfig:
@@ -121,6 +131,19 @@ class LearnConfig:
             )
         if self.fps is not None and not self.fps > 0:
             raise ValueError(f"LearnConfig.fps must be positive, got {self.fps!r}")
+
+    @classmethod
+    def paper(cls, **overrides: Any) -> LearnConfig:
+        """The paper's model (MT §4–5): ``k = 12``, white residual noise, flat durations,
+        EM's textons kept (no selection, no pruning) and no stability projection.
+
+        Args:
+            **overrides: any other field (e.g. ``tmin``, ``fps``, ``min_segments``).
+
+        Returns:
+            The configuration; ``LearnConfig.paper().observation == "paper"``.
+        """
+        return cls(**{**_PAPER, **overrides})
 
     def to_json_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
