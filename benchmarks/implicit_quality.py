@@ -55,6 +55,8 @@ def parse_config(text: str) -> tuple[str, dict[str, Any], dict[str, Any]]:
             lrn[k] = v
         elif k in ("min_explained",):
             lrn[k] = float(v)
+        elif k == "hubness":
+            syn[k] = float(v)
         elif k == "velocity":
             syn[k] = v.lower() in ("1", "true", "yes")
         elif k == "leaf":

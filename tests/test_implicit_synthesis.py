@@ -140,6 +140,7 @@ def test_tree_at_tiny_beta_agrees_with_exhaustive_search(model, clips, leaf):
         max_run=0,
         candidates=1,
         leaf_cap=0,
+        hubness=0.0,
     )
     clip = clips[2]
     _, it = model.synthesize_poses(jax.random.PRNGKey(0), clip, 30, 1e-9, config=cfg)
@@ -158,6 +159,53 @@ def test_tree_at_tiny_beta_agrees_with_exhaustive_search(model, clips, leaf):
         np.testing.assert_array_equal(it, ie)
     else:
         assert codes[it[0]] == codes[ie[0]]
+
+
+def _brute_radius(w, clip, frame, d, k):
+    out = np.zeros(len(w))
+    for i in range(len(w)):
+        d2 = ((w - w[i]) ** 2).sum(-1)
+        ok = ~((clip == clip[i]) & (np.abs(frame - frame[i]) <= d))
+        if ok.any():
+            out[i] = np.sort(d2[ok])[:k].mean()
+    return out
+
+
+@settings(deadline=None, max_examples=15)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 4), st.integers(1, 6))
+def test_neighbour_radius_against_brute_force(seed, n_clips, k):
+    from mtex_jax.implicit._hubness import neighbour_radius
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 40))
+    w = rng.standard_normal((n, 5))
+    clip = np.sort(rng.integers(0, n_clips, n))
+    frame = np.concatenate([np.arange(np.sum(clip == c)) for c in np.unique(clip)])
+    d = int(rng.integers(0, 4))
+    np.testing.assert_allclose(
+        neighbour_radius(w, clip, frame, d, k), _brute_radius(w, clip, frame, d, k), rtol=1e-4
+    )
+
+
+def test_model_neighbour_radius_and_hubness_kernel(model, clips):
+    """The model's r_i is the mean squared distance to the 10 nearest non-overlapping windows,
+    and the exact sampler at β → 0 picks argmin ‖Ψ_i − Φ‖² − h r_i over admissible examples."""
+    w = np.asarray(model.windows)
+    clip, frame = np.asarray(model.clip_index), np.asarray(model.frame_index)
+    r = _brute_radius(w, clip, frame, WINDOW, 10)
+    np.testing.assert_allclose(np.asarray(model.neighbour_radius), r, rtol=1e-4)
+    probe = np.asarray(model.windows_of(clips[0]))[0]
+    d2 = ((w - probe) ** 2).sum(-1)
+    rem = np.array([np.sum(clip[i + 1 :] == clip[i]) for i in range(len(clip))])
+    for h in (0.0, 0.2, 1.0):
+        cfg = SynthesisConfig(continuation=1, lookahead=4, max_run=0, hubness=h)
+        _, idx = model.synthesize_poses(
+            jax.random.PRNGKey(0), clips[0], 1, 1e-9, config=cfg, sampler="exact"
+        )
+        score = np.where(rem >= 4, d2 - h * r, np.inf)
+        assert int(idx[0]) == int(np.argmin(score)), h
+    assert SynthesisConfig.paper().hubness == 0.0
+    assert SynthesisConfig().hubness > 0.0
 
 
 def test_no_recompile_for_new_keys_betas_and_starts(model, clips):
@@ -252,6 +300,9 @@ def test_bad_options_raise_clear_errors(model, clips):
         ({"max_run": -2}, "max_run"),
         ({"candidates": 0}, "candidates"),
         ({"leaf_cap": -1}, "leaf_cap"),
+        ({"hubness": -0.1}, "hubness"),
+        ({"hubness": float("inf")}, "hubness"),
+        ({"hubness": True}, "hubness"),
         ({"leaf": "nearest"}, "leaf"),
         ({"velocity": 1}, "velocity"),
         ({"velocity": False, "blend": 3}, "blend"),
@@ -299,6 +350,8 @@ def test_cli_synthesis_options(tmp_path, capsys):
         "0.8",
         "--sampler",
         "exact",
+        "--hubness",
+        "0.3",
     ]
     assert main(base + opts) == 0
     assert "wrote" in capsys.readouterr().out
@@ -310,6 +363,7 @@ def test_cli_synthesis_options(tmp_path, capsys):
         (["--paper", "--blend", "3"], "blend"),
         (["--max-run", "-3"], "max-run"),
         (["--leaf-cap", "-1"], "leaf-cap"),
+        (["--hubness", "-1"], "hubness"),
     ):
         assert main(base + bad) == 2
         err = capsys.readouterr().err

@@ -113,7 +113,18 @@ def _synthesis_config(args: argparse.Namespace):
         if value is not None:
             positive_int(name, value)
     base = SynthesisConfig.paper() if args.paper else SynthesisConfig()
-    fields = ("blend", "leaf", "lookahead", "continuation", "max_run", "candidates", "leaf_cap")
+    if args.hubness is not None and not (0 <= args.hubness < float("inf")):
+        raise ValueError(f"--hubness must be a finite number ≥ 0, got {args.hubness}")
+    fields = (
+        "blend",
+        "leaf",
+        "lookahead",
+        "continuation",
+        "max_run",
+        "candidates",
+        "leaf_cap",
+        "hubness",
+    )
     opts = {f: getattr(base, f) for f in (*fields, "velocity")}
     opts |= {f: getattr(args, f) for f in fields if getattr(args, f) is not None}
     if args.velocity is not None:
@@ -272,6 +283,12 @@ def register(subparsers) -> None:
     s.add_argument("--candidates", type=int, default=None, help="tree walks per search")
     s.add_argument(
         "--leaf-cap", type=int, default=None, help="leaf members examined per walk (0: all)"
+    )
+    s.add_argument(
+        "--hubness",
+        type=float,
+        default=None,
+        help="weight of the kernel's hubness correction (default 0.2; 0: the paper's kernel)",
     )
     s.add_argument(
         "--weighting",

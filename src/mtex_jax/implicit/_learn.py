@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..motion import FeatureMap, Motion
+from ._hubness import neighbour_radius
 from ._model import ImplicitModel
 from ._tree import _codes_np, _right_svd
 from ._windows import (
@@ -183,6 +184,7 @@ def learn(
     dtype = np.result_type(*[np.asarray(m.rotations).dtype for m in motions], np.float32)
     f = lambda a: jnp.asarray(np.asarray(a, dtype=dtype))
     i32 = lambda a: jnp.asarray(np.asarray(a, dtype=np.int32))
+    clip_index, frame_index = np.concatenate(clip_idx), np.concatenate(frame_idx)
     return ImplicitModel(
         feature_map=fm,
         window=d,
@@ -202,7 +204,8 @@ def learn(
         order=i32(order),
         sorted_codes=i32(codes[order]),
         sorted_coeffs=f(coeffs[order]),
-        clip_index=i32(np.concatenate(clip_idx)),
-        frame_index=i32(np.concatenate(frame_idx)),
+        clip_index=i32(clip_index),
+        frame_index=i32(frame_index),
         acceleration_std=f(acc_std),
+        neighbour_radius=f(neighbour_radius(windows, clip_index, frame_index, d)),
     )

@@ -115,6 +115,9 @@ class ImplicitModel(eqx.Module):
             standard deviation of ``y_{t+1} − 2y_t + y_{t−1}``, except for the channels that
             already are velocities (root displacement and yaw change,
             :func:`velocity_channels`), where it is that of ``y_{t+1} − y_t``.
+        neighbour_radius: ``(n,)`` mean squared distance ``r_i`` of each window to its 10
+            nearest database windows (not overlapping it), the local scale of the synthesis
+            kernel's hubness correction (:mod:`~mtex_jax.implicit._hubness`).
     """
 
     feature_map: FeatureMap
@@ -138,6 +141,7 @@ class ImplicitModel(eqx.Module):
     clip_index: Int[Array, " n"]
     frame_index: Int[Array, " n"]
     acceleration_std: Float[Array, " D"]
+    neighbour_radius: Float[Array, " n"]
 
     def __check_init__(self) -> None:
         d, b = self.window, self.n_components
@@ -169,6 +173,7 @@ class ImplicitModel(eqx.Module):
             "clip_index": (n,),
             "frame_index": (n,),
             "acceleration_std": (p // 2,),
+            "neighbour_radius": (n,),
         }
         for name, shape in expected.items():
             got = np.shape(getattr(self, name))

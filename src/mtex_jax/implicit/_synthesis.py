@@ -11,7 +11,11 @@ since the last transition). One step:
    window of the same clip). Otherwise search (tree, IP Eq. 7–8, or exact, IP Eq. 3) with the
    history as probe; the leaf (or the exact kernel) only admits examples with at least
    ``lookahead`` further frames in their clip (dead ends), and, once a verbatim run has lasted
-   ``max_run`` frames, none within ``d`` frames of ``e_t + 1`` in the same clip.
+   ``max_run`` frames, none within ``d`` frames of ``e_t + 1`` in the same clip. The exact
+   kernel (leaf choice, choice among the candidate walks, exact sampler) scores an example by
+   ``‖Ψ_i − Φ‖² − h r_i`` (hubness correction, :mod:`._hubness`): in ``W ≈ 10³`` dimensions
+   slow near-mean windows are the nearest neighbours of most probes, and without it the
+   motion is slower than the real motion.
 2. **Transition.** If ``e_{t+1} ≠ e_t + 1``: in the velocity form the offset becomes
    ``o = ŷ_t − y(e_{t+1})``, the current pose minus the example's own current pose, and
    ``a = 0``; in the paper's form ``o = 0``.
@@ -77,6 +81,13 @@ class SynthesisConfig(eqx.Module):
         leaf_cap: leaf members examined per walk (``0``: the whole leaf). A larger leaf
             contributes a random block of ``leaf_cap`` consecutive members (cyclic), so the
             cost per walk is ``O(b log n + leaf_cap · W)`` whatever the leaf sizes.
+        hubness: weight ``h`` of the hubness correction of the exact kernel (leaf choice,
+            candidate choice and the exact sampler): an example scores
+            ``‖Ψ_i − Φ‖² − h · r_i`` instead of ``‖Ψ_i − Φ‖²``, where ``r_i`` is its mean
+            squared distance to its nearest database windows
+            (``ImplicitModel.neighbour_radius``). ``0.5`` is CSLS (Conneau et al. 2018);
+            ``0`` is the paper's kernel (IP Eq. 3). Without it, slow near-mean windows are
+            the nearest neighbours of most probes and the motion slows down.
     """
 
     velocity: bool = eqx.field(static=True, default=True)
@@ -87,6 +98,7 @@ class SynthesisConfig(eqx.Module):
     max_run: int = eqx.field(static=True, default=12)
     candidates: int = eqx.field(static=True, default=16)
     leaf_cap: int = eqx.field(static=True, default=32)
+    hubness: float = eqx.field(static=True, default=0.2)
 
     def __check_init__(self) -> None:
         if not isinstance(self.velocity, bool):
@@ -97,6 +109,9 @@ class SynthesisConfig(eqx.Module):
         _check_int(self.max_run, "max_run", 0)
         _check_int(self.candidates, "candidates", 1)
         _check_int(self.leaf_cap, "leaf_cap", 0)
+        h = self.hubness
+        if isinstance(h, bool) or not isinstance(h, int | float) or not 0 <= h < np.inf:
+            raise ValueError(f"SynthesisConfig.hubness must be a finite number ≥ 0, got {h!r}")
         if self.leaf not in _LEAVES:
             raise ValueError(
                 f"SynthesisConfig.leaf must be one of {', '.join(_LEAVES)}, got {self.leaf!r}"
@@ -110,8 +125,17 @@ class SynthesisConfig(eqx.Module):
     @classmethod
     def paper(cls) -> SynthesisConfig:
         """The published sampler (IP §5, Eq. 7–8): absolute poses, a search every frame,
-        ``p(c_i | c_t)`` in the leaf, no blending, no look-ahead, no run cap."""
-        return cls(velocity=False, blend=0, leaf="weighted", lookahead=0, continuation=1, max_run=0)
+        ``p(c_i | c_t)`` in the leaf, no blending, no look-ahead, no run cap, no hubness
+        correction."""
+        return cls(
+            velocity=False,
+            blend=0,
+            leaf="weighted",
+            lookahead=0,
+            continuation=1,
+            max_run=0,
+            hubness=0.0,
+        )
 
 
 def _remaining(model: ImplicitModel) -> np.ndarray:
@@ -124,6 +148,18 @@ def _pick(key: PRNGKeyArray, logw: Array, ok: Array, valid: Array) -> Array:
     masked = jnp.where(ok, logw, -jnp.inf)
     fallback = jnp.where(valid, logw, -jnp.inf)
     return jax.random.categorical(key, jnp.where(jnp.any(ok), masked, fallback))
+
+
+def _kernel(
+    model: ImplicitModel, cfg: SynthesisConfig, ex: Array, probe: Array, beta: Array
+) -> Array:
+    """Log weight of the exact kernel of examples ``ex`` for ``probe``, hubness-corrected:
+    ``−(‖Ψ_i − Φ‖² − h r_i) / (2β)``."""
+    diff = model.windows[ex].astype(probe.dtype) - probe
+    d2 = jnp.sum(diff * diff, axis=-1)
+    if cfg.hubness > 0:
+        d2 = d2 - cfg.hubness * model.neighbour_radius[ex].astype(probe.dtype)
+    return -0.5 * d2 / beta
 
 
 def _admissible(
@@ -175,8 +211,7 @@ def _search_tree(
             z = (model.sorted_coeffs[jnp.minimum(pos, n - 1)].astype(c.dtype) - c) / scale
             logw = -0.5 * jnp.sum(z * z, axis=-1)
         else:
-            diff = model.windows[ex].astype(c.dtype) - probe
-            logw = -0.5 * jnp.sum(diff * diff, axis=-1) / beta
+            logw = _kernel(model, cfg, ex, probe, beta)
         ok = valid & _admissible(model, cfg, ex, cur, run, rem)
         j = _pick(k_leaf, logw, ok, valid)
         return ex[j], ok[j]
@@ -185,8 +220,7 @@ def _search_tree(
         return walk(key)[0]
     k_walks, k_pick = jax.random.split(key)
     idx, ok = jax.vmap(walk)(jax.random.split(k_walks, cfg.candidates))
-    diff = model.windows[idx].astype(c.dtype) - probe
-    logp = -0.5 * jnp.sum(diff * diff, axis=-1) / beta
+    logp = _kernel(model, cfg, idx, probe, beta)
     return idx[_pick(k_pick, logp, ok, jnp.ones_like(ok))]
 
 
@@ -201,9 +235,8 @@ def _search_exact(
     rem: Array,
 ) -> Int[Array, ""]:
     """Exact sampler (IP Eq. 3) over all admissible examples, ``O(n·W)``."""
-    diff = model.windows.astype(probe.dtype) - probe
-    logw = -0.5 * jnp.sum(diff * diff, axis=-1) / beta
     ex = jnp.arange(model.n_examples, dtype=jnp.int32)
+    logw = _kernel(model, cfg, ex, probe, beta)
     ok = _admissible(model, cfg, ex, cur, run, rem)
     return _pick(key, logw, ok, jnp.ones_like(ok)).astype(jnp.int32)
 

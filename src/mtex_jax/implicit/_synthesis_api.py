@@ -20,6 +20,11 @@ if TYPE_CHECKING:
 __all__ = ["SynthLeafRule", "SynthesisConfig", "synthesize", "synthesize_poses"]
 
 
+def _replace(config: SynthesisConfig, **changes: Any) -> SynthesisConfig:
+    fields = {f: getattr(config, f) for f in SynthesisConfig.__dataclass_fields__}
+    return SynthesisConfig(**(fields | changes))
+
+
 def _config(config: SynthesisConfig | None, leaf: Any, candidates: Any, fn: str) -> SynthesisConfig:
     if config is None:
         config = SynthesisConfig()
@@ -28,28 +33,10 @@ def _config(config: SynthesisConfig | None, leaf: Any, candidates: Any, fn: str)
     if leaf is not None:
         if leaf not in ("uniform", "weighted", "exact"):
             raise ValueError(f"{fn}: leaf must be 'uniform', 'weighted' or 'exact', got {leaf!r}")
-        config = SynthesisConfig(
-            velocity=config.velocity,
-            blend=config.blend,
-            leaf=leaf,
-            lookahead=config.lookahead,
-            continuation=config.continuation,
-            max_run=config.max_run,
-            candidates=config.candidates,
-            leaf_cap=config.leaf_cap,
-        )
+        config = _replace(config, leaf=leaf)
     if candidates is not None:
         _check_candidates(candidates, fn)
-        config = SynthesisConfig(
-            velocity=config.velocity,
-            blend=config.blend,
-            leaf=config.leaf,
-            lookahead=config.lookahead,
-            continuation=config.continuation,
-            max_run=config.max_run,
-            candidates=int(candidates),
-            leaf_cap=config.leaf_cap,
-        )
+        config = _replace(config, candidates=int(candidates))
     return config
 
 
