@@ -16,6 +16,7 @@ from ._clean import (
     contact_plants as contact_plants,
     load_contacts as load_contacts,
     save_contacts as save_contacts,
+    swing_guidance as swing_guidance,
 )
 from ._constraints import (
     Constraints as Constraints,
@@ -53,5 +54,6 @@ __all__ = [
     "save_contacts",
     "segments_of",
     "solve_edit",
+    "swing_guidance",
     "synthesize",
 ]

@@ -13,6 +13,7 @@ import numpy as np
 from ..motion import FeatureMap, Motion
 from ..texture import MotionTexture, Synthesis
 from ._constraints import Constraints, EditWeights
+from ._gn import solve_edit_gn, solve_edit_gn_jit
 from ._prior import FrameSegments, WhitenedTextons, frame_segments
 from ._solve import EditResult, bfgs_polish, problem, solve_edit
 
@@ -23,12 +24,21 @@ _bfgs_jit = eqx.filter_jit(bfgs_polish)
 
 
 @eqx.filter_jit
-def _solve_many(fm, tx, seg, Y0, sp, sh, cons, w, **kw):
-    # lax.map, not vmap: under vmap, XLA's HLO verifier rejects the batched forward-kinematics
-    # dot_general (jax 0.10.2, "Expected instruction to have shape ..."); one compiled
-    # program runs the motions one after the other
-    one = lambda a: solve_edit(fm, tx, a[0], a[1], a[2], a[3], a[4], w, **kw)
-    return jax.lax.map(one, (seg, Y0, sp, sh, cons))
+def _solve_many(fm, tx, seg, Y0, sp, sh, cons, w, *, solver: str, **kw):
+    # vmap over the motions (the forward kinematics of ._fk batch without the dot_general
+    # that XLA's HLO verifier rejected under vmap)
+    core = solve_edit_gn if solver == "gn" else solve_edit
+    one = lambda s, y, a, b, c: core(fm, tx, s, y, a, b, c, w, **kw)
+    return jax.vmap(one)(seg, Y0, sp, sh, cons)
+
+
+def _solver(solver: str, cons: Constraints) -> str:
+    if solver not in ("auto", "gn", "lm"):
+        raise ValueError(f"solver must be 'auto', 'gn' or 'lm', got {solver!r}")
+    has_vel = bool(np.shape(cons.vel_joints)[-1])
+    if solver == "gn" and has_vel:
+        raise ValueError("solver='gn' does not take velocity targets (use 'lm' or 'auto')")
+    return ("lm" if has_vel else "gn") if solver == "auto" else solver
 
 
 def _feature_map(texture: Any) -> FeatureMap:
@@ -129,13 +139,17 @@ def edit(
     fallback: bool = True,
     cg_steps: int = 100,
     cg_rtol: float = 1e-6,
+    solver: str = "auto",
 ) -> EditResult:
     """Edit a motion: meet the constraints, otherwise stay statistically like the texture.
 
     Minimises ``½‖prior‖² + ½ Σ ‖constraint residuals‖²`` over the observation vectors
-    ``Y (T, D)`` (see :mod:`mtex_jax.edit` for the objective and which constraints are exact)
-    with Levenberg–Marquardt (optimistix), in whitened variables; BFGS is run from where it
-    stopped if it did not converge (``fallback``). The solve is jit-compiled once per shape.
+    ``Y (T, D)`` (see :mod:`mtex_jax.edit` for the objective and which constraints are exact).
+    Two solvers: ``"gn"``, Gauss–Newton with the banded normal equations (root trajectory
+    held; :mod:`mtex_jax.edit._gn`), fast and the default; ``"lm"``, Levenberg–Marquardt
+    (optimistix) in whitened variables with conjugate gradients, BFGS run from where it
+    stopped if it did not converge (``fallback``); ``"auto"`` takes ``"gn"`` unless there are
+    velocity targets. The solve is jit-compiled once per shape.
 
     Args:
         texture: the motion texture (its textons are the prior; its feature map decodes).
@@ -154,6 +168,7 @@ def edit(
         fallback: run L-BFGS if Levenberg–Marquardt did not converge (not for float32
             variables while x64 is enabled, where optimistix 0.1.0 mixes dtypes).
         cg_steps, cg_rtol: conjugate-gradient limits of each Levenberg–Marquardt step.
+        solver: ``"auto"``, ``"gn"`` or ``"lm"`` (above); ``max_steps`` applies to either.
 
     Returns:
         :class:`EditResult` (check ``converged`` and ``met``; ``report()`` says it in words).
@@ -172,6 +187,12 @@ def edit(
             raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
     tx = WhitenedTextons.of(texture.textons, Y.dtype)
     keep = _keep(cons, fm, floor_joints)
+    if _solver(solver, cons) == "gn":
+        if not relative:
+            raise ValueError("relative=False needs solver='lm'")
+        return solve_edit_gn_jit(
+            fm, tx, seg, Y, sp, sh, cons, w, keep=keep, rounds=rounds, max_steps=max_steps
+        )
     kw: dict[str, Any] = dict(keep=keep, relative=bool(relative))
     res = _solve_jit(
         fm,
@@ -207,12 +228,15 @@ def edit_many(
     relative: bool = True,
     rounds: int = 3,
     max_steps: int = 60,
+    solver: str = "auto",
 ) -> EditResult:
-    """Edit several motions of equal length in one jit-compiled program (``lax.map``).
+    """Edit several motions of equal length in one jit-compiled program (``vmap``).
 
     The motions must have the same number of frames and their constraints the same shapes
     (use ``pad_to`` of :func:`make_constraints`; plant feet in the same order). No BFGS
-    fallback: check ``converged`` per motion (and :func:`edit` those that did not).
+    fallback: check ``converged`` per motion (and :func:`edit` those that did not). The
+    solver is chosen as by :func:`edit`; under ``vmap`` a Gauss–Newton loop runs until every
+    motion has stopped (each keeps its own result and ``converged``).
 
     Returns:
         :class:`EditResult` with a leading batch axis on every field.
@@ -236,6 +260,12 @@ def edit_many(
     tx = WhitenedTextons.of(texture.textons, Y.dtype)
     keep = tuple(sorted(set().union(*(_keep(c, fm, floor_joints) for c in cons))))
     w = EditWeights() if weights is None else weights
+    which = _solver(solver, C)
+    kw: dict[str, Any] = dict(keep=keep, rounds=rounds, max_steps=max_steps)
+    if which == "lm":
+        kw["relative"] = bool(relative)
+    elif not relative:
+        raise ValueError("relative=False needs solver='lm'")
     return _solve_many(
         fm,
         tx,
@@ -245,10 +275,8 @@ def edit_many(
         jnp.stack([o[2] for o in obs]),
         C,
         w,
-        keep=keep,
-        relative=bool(relative),
-        rounds=rounds,
-        max_steps=max_steps,
+        solver=which,
+        **kw,
     )
 
 

@@ -17,15 +17,19 @@ import dataclasses
 import os
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..core import load_arrays_json, save_arrays_json
 from ..metrics import ContactModel, PenetrationResult, SkatingResult
 from ..motion import Motion, Skeleton
 from ..texture import MotionTexture, Synthesis
-from ._api import _feature_map, _observations, edit, segments_of
+from ._api import _check, _feature_map, _keep, _observations, edit, segments_of
+from ._banded import PointTargets
 from ._constraints import EditWeights, make_constraints
-from ._solve import EditResult
+from ._gn import solve_edit_gn_jit
+from ._prior import WhitenedTextons
+from ._solve import EditResult, sub_skeleton
 
 __all__ = [
     "CleanResult",
@@ -34,21 +38,33 @@ __all__ = [
     "contact_plants",
     "load_contacts",
     "save_contacts",
+    "swing_guidance",
 ]
 
 _KIND = "mtex_jax.ContactModel"
 
 
-def clean_weights() -> EditWeights:
-    """The weights :func:`clean` uses: the root may move (its trajectory carries the feet);
-    plants and the floor cost one unit per 3.3 mm (stricter weights make the
-    conjugate-gradient solves slow); a weaker smoothness term than for edits, since stopping
-    a sliding foot needs a quick change of its velocity."""
-    return EditWeights(root=3.0, anchor=1.0, smooth=3.0, plant=300.0, floor=300.0)
+def clean_weights(solver: str = "gn") -> EditWeights:
+    """The weights :func:`clean` uses.
+
+    ``"gn"`` (banded Gauss–Newton, root trajectory held): plants and the floor cost one unit
+    per millimetre (a direct banded solve is not slowed by stiff weights); ``"lm"``: the root
+    may move (``root=3``, its trajectory carries the feet), plants and floor one unit per
+    3.3 mm (stricter weights make the conjugate-gradient solves slow). Both use a weaker
+    smoothness term than edits, since stopping a sliding foot needs a quick change of its
+    velocity."""
+    if solver == "lm":
+        return EditWeights(root=3.0, anchor=1.0, smooth=3.0, plant=300.0, floor=300.0)
+    return EditWeights(anchor=1.0, smooth=3.0, plant=1e3, floor=1e3)
 
 
 def contact_plants(
-    contacts: ContactModel, motion: Motion, *, min_steps: int = 1, rule: str = "low"
+    contacts: ContactModel,
+    motion: Motion,
+    *,
+    min_steps: int = 1,
+    rule: str = "low",
+    max_gap: int = 0,
 ) -> tuple[np.ndarray, list[tuple[int, int, int, float]]]:
     """Contact labels of a motion and the plants they make.
 
@@ -62,6 +78,9 @@ def contact_plants(
             foot that moves fast is skating, which is what cleaning removes);
             ``"low_and_slow"``: also slower than the speed threshold
             (:meth:`ContactModel.labels`), which leaves fast low feet sliding.
+        max_gap: two runs separated by at most this many non-contact steps become one (a
+            foot that rises above the threshold for a frame or two has not made a step; two
+            plants that close would make it jump between their positions).
 
     Returns:
         ``labels (T − 1, F)`` bool and ``[(foot joint, first frame, last frame, height)]``.
@@ -74,6 +93,13 @@ def contact_plants(
     if rule == "low_and_slow":
         labels = contacts.labels(motion)
     plants = []
+    if isinstance(max_gap, bool) or not isinstance(max_gap, int) or max_gap < 0:
+        raise ValueError(f"max_gap must be an integer >= 0, got {max_gap!r}")
+    for k in range(len(contacts.feet)):  # close gaps of at most max_gap steps between runs
+        idx = np.flatnonzero(labels[:, k])
+        for a, b in zip(idx[:-1], idx[1:], strict=True):
+            if 1 < b - a <= max_gap + 1:
+                labels[a:b, k] = True
     for k, foot in enumerate(contacts.feet):
         col = np.concatenate([[False], labels[:, k], [False]])
         edges = np.flatnonzero(np.diff(col.astype(np.int8)))
@@ -121,6 +147,75 @@ class CleanResult:
         return self.loglik_before - self.loglik_after
 
 
+def swing_guidance(
+    contacts: ContactModel,
+    P0: np.ndarray,
+    labels: np.ndarray,
+    *,
+    ramp: float = 0.25,
+    margin: float = 0.005,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Targets for the feet between their plants, so that corrections blend in and out.
+
+    Planting a foot moves it by ``c_t = plant target − original`` during the run. Between two
+    runs the correction goes smoothly (smoothstep in time) from the first run's last ``c`` to
+    the next run's first ``c``; before the first run and after the last it fades to zero over
+    ``ramp`` seconds. The swing foot is guided to ``original + c_t``: no jump of position or
+    velocity at a plant's ends, so cleaning does not add acceleration or jerk there. A swing
+    foot that was above the contact height threshold is guided to at least ``margin`` above
+    it (the correction must not lower it into the "low" band, where it would count as a
+    sliding contact).
+
+    Args:
+        contacts: the contact model (its feet are the columns of ``labels``).
+        P0: ``(T, J, 3)`` original joint positions.
+        labels: ``(T − 1, F)`` planted steps (from :func:`contact_plants`).
+        ramp: seconds over which a correction fades at the motion's ends.
+        margin: metres above the height threshold for the swing feet's guidance.
+
+    Returns:
+        ``targets (T, F, 3)`` and ``swing (T, F)`` bool (frames that get a guidance target).
+    """
+    T = P0.shape[0]
+    up = contacts.skeleton.up_axis
+    ramp_n = max(round(ramp * contacts.fps), 1)
+    H = contacts.height_threshold
+    targets = np.zeros((T, len(contacts.feet), 3))
+    swing = np.zeros((T, len(contacts.feet)), bool)
+    for k, foot in enumerate(contacts.feet):
+        on = np.zeros(T, bool)
+        on[:-1] |= labels[:, k]
+        on[1:] |= labels[:, k]
+        p = P0[:, foot]
+        corr = np.zeros((T, 3))
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], on.astype(np.int8), [0]])))
+        for a, b in zip(edges[::2], edges[1::2], strict=True):  # frames a..b-1 planted
+            h = float(np.clip(p[a:b, up].mean(), contacts.floor, contacts.height_threshold[k]))
+            tgt = p[a:b].mean(axis=0)
+            tgt[up] = h
+            corr[a:b] = tgt - p[a:b]
+        idx = np.flatnonzero(on)
+        if idx.size == 0:
+            continue
+        for t0 in np.flatnonzero(~on):
+            left, right = idx[idx < t0], idx[idx > t0]
+            if left.size and right.size:
+                a, b = left[-1], right[0]
+                x = (t0 - a) / (b - a)
+                s = x * x * (3 - 2 * x)
+                corr[t0] = (1 - s) * corr[a] + s * corr[b]
+            else:
+                a = left[-1] if left.size else right[0]
+                x = min(abs(t0 - a) / ramp_n, 1.0)
+                corr[t0] = (1 - x * x * (3 - 2 * x)) * corr[a]
+        targets[:, k] = p + corr
+        # a swing foot that was above the contact height is guided to stay above it
+        high = ~on & (p[:, up] >= H[k])
+        targets[high, k, up] = np.maximum(targets[high, k, up], H[k] + margin)
+        swing[:, k] = ~on
+    return targets, swing
+
+
 def clean(
     texture: MotionTexture,
     motion: Synthesis | Motion,
@@ -129,16 +224,23 @@ def clean(
     weights: EditWeights | None = None,
     min_steps: int = 1,
     rule: str = "low",
-    max_steps: int = 30,
+    max_gap: int | None = None,
+    solver: str = "gn",
+    swing_weight: float = 100.0,
+    max_steps: int | None = None,
+    rtol: float = 1e-3,
     cg_steps: int = 1000,
     loglik: bool = True,
 ) -> CleanResult:
     """Remove foot skating and floor penetration, staying close to the texture's dynamics.
 
     Contacts are detected on the raw motion with the training clips' thresholds (module
-    notes); each contact run is planted (a penalty: no horizontal motion, at a fixed height),
-    every moving joint is kept above the training floor (a one-sided penalty), and the texture
-    prior (on the change) plus a smoothness term keep the rest of the motion as it was.
+    notes); each contact run is planted (a penalty met by multiplier rounds: one horizontal
+    position per run, at the run's height), every moving joint is kept above the training floor
+    (a one-sided penalty), a swing foot that was above the contact height stays above it, and
+    the texture prior (on the change) plus a smoothness term keep the rest of the motion as it
+    was. With the default banded Gauss–Newton solver (:mod:`mtex_jax.edit._gn`) the swing feet
+    are also guided so that corrections blend in and out (:func:`swing_guidance`).
 
     Args:
         texture: the motion texture (with its feature map).
@@ -149,9 +251,16 @@ def clean(
         weights: objective weights (default :func:`clean_weights`).
         min_steps: shortest contact run that is planted.
         rule: contact rule of :func:`contact_plants` (``"low"`` or ``"low_and_slow"``).
-        max_steps: Levenberg–Marquardt steps (no BFGS fallback here: at this size L-BFGS
-            was measured slower and no better; ``edit.converged`` says whether it converged).
-        cg_steps: conjugate-gradient steps per Levenberg–Marquardt step.
+        max_gap: contact runs closer than this many steps are merged (default: 0.1 s).
+        solver: ``"gn"`` (banded Gauss–Newton, the default) or ``"lm"`` (matrix-free
+            Levenberg–Marquardt with conjugate gradients, plant residuals on steps, root free;
+            slow: minutes for 10 s of motion).
+        swing_weight: per metre, the swing feet's guidance targets (``"gn"`` only).
+        max_steps: solver steps (default 8 for ``"gn"``, 30 for ``"lm"``).
+        rtol: ``"gn"`` stops (and reports convergence) when a step lowers the cost by less
+            than this fraction (or moves no variable by more than ``1e-4``). One round, no
+            multipliers: plants are penalties (``EditWeights.plant``), measured in the result.
+        cg_steps: conjugate-gradient steps per Levenberg–Marquardt step (``"lm"`` only).
         loglik: also compute the log-likelihood per frame before and after (a forward pass
             each; ``False`` reports NaN).
 
@@ -167,6 +276,10 @@ def clean(
         raise ValueError(
             f"contacts: fitted at {contacts.fps:g} Hz, the texture is at {fm.fps:g} Hz"
         )
+    if solver not in ("gn", "lm"):
+        raise ValueError(f"solver must be 'gn' or 'lm', got {solver!r}")
+    if not (np.isfinite(swing_weight) and swing_weight >= 0):
+        raise ValueError(f"swing_weight must be a finite number >= 0, got {swing_weight}")
     if isinstance(motion, Synthesis):
         if motion.motion is None:
             raise ValueError("motion: the synthesis was not decoded (decode=False)")
@@ -178,7 +291,8 @@ def clean(
     if raw.n_frames < 3:
         raise ValueError(f"motion: at least 3 frames are needed, got {raw.n_frames}")
     Y, sp, sh = _observations(texture, motion, None, None)
-    labels, plants = contact_plants(contacts, raw, min_steps=min_steps, rule=rule)
+    gap = round(0.1 * float(fm.fps)) if max_gap is None else max_gap
+    labels, plants = contact_plants(contacts, raw, min_steps=min_steps, rule=rule, max_gap=gap)
     # swing feet stay off the ground: a frame of no planted step whose foot was above its
     # height threshold keeps it above (one-sided)
     ((h, _),) = contacts.heights_and_speeds(raw, "clean")
@@ -196,21 +310,55 @@ def clean(
         feet=contacts.feet,
         lift=lift,
     )
+    cons = _check(cons, Y, fm)
     seg = segments_of(texture, motion)
-    res = edit(
-        texture,
-        Y,
-        cons,
-        weights=clean_weights() if weights is None else weights,
-        segments=seg,
-        start_position=sp,
-        start_heading=sh,
-        rounds=1,
-        max_steps=max_steps,
-        cg_steps=cg_steps,
-        cg_rtol=1e-2,
-        fallback=False,
-    )
+    w = clean_weights(solver) if weights is None else weights
+    if solver == "lm":
+        res = edit(
+            texture,
+            Y,
+            cons,
+            weights=w,
+            segments=seg,
+            start_position=sp,
+            start_heading=sh,
+            rounds=1,
+            max_steps=30 if max_steps is None else max_steps,
+            cg_steps=cg_steps,
+            cg_rtol=1e-2,
+            fallback=False,
+            solver="lm",
+        )
+    else:
+        keep = _keep(cons, fm, None)
+        P0 = np.asarray(fm.joint_positions(Y, sp, sh))
+        tgt, swing = swing_guidance(contacts, P0, labels)
+        _, order = sub_skeleton(fm.skeleton, keep)  # the solve's kept joints, in order
+        slots = np.searchsorted(np.array(order), np.array(contacts.feet))
+        T, F = swing.shape
+        extra = PointTargets(
+            slot=jnp.asarray(np.tile(slots, T), jnp.int32),
+            frame=jnp.asarray(np.repeat(np.arange(T), F), jnp.int32),
+            target=jnp.asarray(tgt.reshape(T * F, 3), Y.dtype),
+            weight=jnp.asarray(np.repeat(swing.reshape(-1, 1) * swing_weight, 3, 1), Y.dtype),
+            exact=jnp.zeros(T * F, bool),
+        )
+        tx = WhitenedTextons.of(texture.textons, Y.dtype)
+        res = solve_edit_gn_jit(
+            fm,
+            tx,
+            seg,
+            Y,
+            sp,
+            sh,
+            cons,
+            w,
+            keep=keep,
+            extra=extra,
+            rounds=1,
+            max_steps=8 if max_steps is None else max_steps,
+            rtol=rtol,
+        )
     out = fm.decode(res.Y, sp, sh)
     nan = float("nan")
     return CleanResult(

@@ -38,8 +38,9 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ..motion import FeatureMap, Skeleton, forward_kinematics_arrays, ground_axes, quat_rotate
+from ..motion import FeatureMap, Skeleton, ground_axes, quat_rotate
 from ._constraints import Constraints, EditWeights
+from ._fk import fk_positions
 from ._prior import (
     FrameSegments,
     WhitenedTextons,
@@ -173,7 +174,7 @@ class _Problem(eqx.Module):
         m = self.fm.decode(Y, self.sp, self.sh)
         k = list(self.keep)
         lp = None if m.local_positions is None else m.local_positions[:, k]
-        P = forward_kinematics_arrays(self.sub, m.root_positions, m.rotations[:, k], lp)
+        P = fk_positions(self.sub, m.root_positions, m.rotations[:, k], lp)
         idx = np.zeros(self.fm.skeleton.n_joints, np.int64)
         idx[k] = np.arange(len(k))
         _, h0, _ = ground_axes(self.fm.skeleton.up_axis)
@@ -205,9 +206,8 @@ def _sq(tree: Any) -> Array:
     return 0.5 * jnp.sum(jnp.stack([jnp.sum(a * a) for a in jax.tree.leaves(tree)]))
 
 
-def _measure(prob: _Problem, u: Array) -> dict[str, Array]:
+def _measure(prob: _Problem, Y: Array) -> dict[str, Array]:
     c = prob.cons
-    Y = prob.edited(u)
     P = prob.positions(Y)
     up, h0, h1 = ground_axes(prob.fm.skeleton.up_axis)
     pe = jnp.linalg.norm(P[c.frames, c.joints] - c.targets, axis=-1)
@@ -363,7 +363,7 @@ def _finish(prob: _Problem, z, shift, ok, steps, used_bfgs) -> EditResult:
     finite = jnp.all(jnp.isfinite(z))
     z = jnp.where(finite, z, 0.0)
     cost = _sq(prob.residuals(z, shift))
-    m = _measure(prob, z)
+    m = _measure(prob, prob.edited(z))
     return EditResult(
         Y=jnp.where(finite, prob.edited(z), prob.Y0),
         u=z,
@@ -373,6 +373,23 @@ def _finish(prob: _Problem, z, shift, ok, steps, used_bfgs) -> EditResult:
         used_bfgs=used_bfgs,
         finite=finite,
         **m,
+    )
+
+
+def _finish_banded(prob: _Problem, z: Array, ok: Array, steps: Array, cost: Array) -> EditResult:
+    """Measure a banded Gauss–Newton solution (``z`` the displacement of ``Y``)."""
+    c = prob.cons
+    finite = jnp.all(jnp.isfinite(z))
+    Y = jnp.where(c.pose_mask[:, None], c.poses, prob.Y0 + jnp.where(finite, z, 0.0))
+    return EditResult(
+        Y=Y,
+        u=jnp.where(finite, z, 0.0),
+        converged=jnp.asarray(ok) & finite,
+        steps=jnp.asarray(steps, jnp.int32),
+        cost=jnp.where(finite, cost, jnp.inf),
+        used_bfgs=jnp.asarray(False),
+        finite=finite,
+        **_measure(prob, Y),
     )
 
 

@@ -1,0 +1,249 @@
+"""Gauss–Newton with the banded normal equations: the fast solver of edits and cleaning.
+
+With the root's horizontal trajectory held (the channels ``root.d*``, whose running sums place
+every later frame), a joint's world position at frame ``t`` depends on ``y_t`` only. Every
+constraint residual of a point target or a one-sided height bound then has a per-frame
+Jacobian ``J_t``, and the Gauss–Newton normal equations of
+
+.. code-block:: text
+
+    ½ zᵀ H z + ½ Σ_t ‖W_t r_t(Y₀ + z)‖²        (H: prior + smoothness + anchor, block-banded)
+
+are ``(H + Σ_t J_tᵀ W_t² J_t) z⁺ = Σ_t J_tᵀ W_t² (J_t z − r_t)``: the prior's band (two frames
+wide) plus block-diagonal terms. One block Cholesky factorisation of two-frame blocks solves it
+in ``O(T·D³)``, with no iterative linear solver. The per-frame Jacobians are ``D``
+Jacobian-vector products of the whole decode and forward kinematics (a tangent that moves one
+channel in every frame at once gives every frame's column, because frames do not interact).
+
+The iteration is damped by backtracking (a step that raises the cost is halved, up to four
+times). It stops when the cost changes by less than ``rtol`` relatively and the step is below
+``xtol`` (z-scored units); ``converged`` reports exactly that. Point targets are met by
+multiplier rounds (their target is shifted by the remaining error between rounds), as in the
+Levenberg–Marquardt solver. Everything is traced, so the solve batches with ``vmap``.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, Bool, Float, Int
+
+from ..motion import FeatureMap, Skeleton
+from ._fk import fk_positions
+from ._whiten import whitening
+
+__all__ = [
+    "BandedSolve",
+    "PointTargets",
+    "frame_jacobians",
+    "kept_positions",
+    "root_free_channels",
+    "solve_banded",
+]
+
+
+class PointTargets(eqx.Module):
+    """Joint world positions wanted at frames, with per-coordinate weights.
+
+    Attributes:
+        slot: ``(P,)`` index of the joint among the solve's kept joints.
+        frame: ``(P,)`` frame of each target.
+        target: ``(P, 3)`` world positions (metres).
+        weight: ``(P, 3)`` per metre (0: that coordinate is free; an inactive slot is all 0).
+        exact: ``(P,)`` whether multiplier rounds shift this target (meet it exactly).
+    """
+
+    slot: Int[Array, " P"]
+    frame: Int[Array, " P"]
+    target: Float[Array, "P 3"]
+    weight: Float[Array, "P 3"]
+    exact: Bool[Array, " P"]
+
+
+class BandedSolve(eqx.Module):
+    """Result of :func:`solve_banded`.
+
+    Attributes:
+        z: ``(T, D)`` displacement of the observation vectors.
+        converged: the last round's stopping test held (not just the step cap).
+        steps: Gauss–Newton steps over all rounds.
+        cost: final objective (with the last round's shifted targets).
+        factor_ok: every block Cholesky factorisation succeeded.
+    """
+
+    z: Float[Array, "T D"]
+    converged: Bool[Array, ""]
+    steps: Int[Array, ""]
+    cost: Float[Array, ""]
+    factor_ok: Bool[Array, ""]
+
+
+def kept_positions(
+    fm: FeatureMap, sub: Skeleton, keep: tuple[int, ...], Y: Array, sp: Array, sh: Array
+) -> Array:
+    """World positions ``(T, K, 3)`` of the kept joints (decode + forward kinematics)."""
+    m = fm.decode(Y, sp, sh)
+    k = list(keep)
+    lp = None if m.local_positions is None else m.local_positions[:, k]
+    return fk_positions(sub, m.root_positions, m.rotations[:, k], lp)
+
+
+def frame_jacobians(fn, Y: Array, free_ch: Array) -> tuple[Array, Array]:
+    """``P = fn(Y)`` ``(T, K, 3)`` and its per-frame Jacobians ``(T, K, 3, D)`` with respect
+    to the free channels (held channels' columns are zero).
+
+    Valid when frames do not interact through the free channels (module notes)."""
+    D = Y.shape[1]
+    P, lin = jax.linearize(fn, Y)
+    eye = jnp.eye(D, dtype=Y.dtype) * free_ch[None, :]
+    cols = jax.vmap(lambda e: lin(jnp.broadcast_to(e, Y.shape)))(eye)  # (D, T, K, 3)
+    return P, jnp.moveaxis(cols, 0, -1)
+
+
+def _masked_bands(bands, anchor: Array, free_ch: Array):
+    mm = free_ch[:, None] * free_ch[None, :]
+    H0, H1, H2 = bands
+    eye = jnp.diag(1.0 - free_ch)
+    return (H0 * mm + eye, H1 * mm, H2 * mm), anchor * free_ch
+
+
+def solve_banded(
+    fn,
+    Y0: Float[Array, "T D"],
+    bands: tuple[Array, Array, Array],
+    anchor: Float[Array, " D"],
+    free_ch: Float[Array, " D"],
+    held: Bool[Array, " T"],
+    poses: Float[Array, "T D"],
+    points: PointTargets,
+    lower: Float[Array, "T K"],
+    lower_weight: Float[Array, ""],
+    up: int,
+    *,
+    rounds: int = 3,
+    max_steps: int = 8,
+    rtol: float = 1e-6,
+    xtol: float = 1e-4,
+) -> BandedSolve:
+    """Minimise the banded objective (module notes) by Gauss–Newton, with multiplier rounds.
+
+    Args:
+        fn: ``Y ↦ (T, K, 3)`` kept joint positions (frames must not interact through the free
+            channels).
+        Y0: ``(T, D)`` the motion before the edit.
+        bands: ``(H0, H1, H2)`` weighted prior + smoothness Hessian bands.
+        anchor: ``(D,)`` per-channel anchor weights.
+        free_ch: ``(D,)`` 1 for a free channel, 0 for a held one (e.g. ``root.d*``).
+        held: ``(T,)`` frames replaced exactly by ``poses``.
+        poses: ``(T, D)`` the held frames' observation vectors.
+        points: the point targets.
+        lower: ``(T, K)`` lowest allowed height of each kept joint (``-inf``: none).
+        lower_weight: per metre, the one-sided height penalty.
+        up: the up axis.
+        rounds: multiplier rounds (``≥ 1``).
+        max_steps: Gauss–Newton steps per round.
+        rtol: relative change of the cost below which a round stops.
+        xtol: largest step (z-scored units) below which a round stops.
+
+    Returns:
+        :class:`BandedSolve`.
+    """
+    dt = Y0.dtype
+    T, D = Y0.shape
+    bands, anchor = _masked_bands(bands, anchor, free_ch)
+    delta = jnp.where(held[:, None], poses - Y0, 0.0)
+    w2 = points.weight**2
+    lw = jnp.asarray(lower_weight, dt)
+
+    def edited(z: Array) -> Array:
+        return jnp.where(held[:, None], poses, Y0 + z * free_ch)
+
+    def point_res(P: Array, shift: Array) -> Array:
+        return P[points.frame, points.slot] - points.target - shift  # (P, 3)
+
+    def cost_of(z: Array, shift: Array) -> Array:
+        P = fn(edited(z))
+        r = point_res(P, shift)
+        low = jnp.maximum(lower - P[..., up], 0.0)
+        hz = _band_quad(bands, anchor, jnp.where(held[:, None], delta, z * free_ch))
+        return 0.5 * (hz + jnp.sum(w2 * r * r) + jnp.sum((lw * low) ** 2))
+
+    def gn_step(z: Array, shift: Array) -> tuple[Array, Array]:
+        P, J = frame_jacobians(fn, edited(z), free_ch)
+        r = point_res(P, shift)
+        Jp = J[points.frame, points.slot]  # (P, 3, D)
+        zp = z[points.frame]
+        # Σ Jᵀ W² J and Σ Jᵀ W² (J z − r), scattered to the frames
+        A_p = jnp.einsum("pcd,pc,pce->pde", Jp, w2, Jp)
+        b_p = jnp.einsum("pcd,pc,pc->pd", Jp, w2, jnp.einsum("pce,pe->pc", Jp, zp) - r)
+        A = jnp.zeros((T, D, D), dt).at[points.frame].add(A_p)
+        b = jnp.zeros((T, D), dt).at[points.frame].add(b_p)
+        h = P[..., up]
+        act = (h < lower).astype(dt)  # (T, K): one-sided, the active set at z
+        Ju = J[:, :, up, :] * (lw * act)[..., None]  # (T, K, D)
+        ru = lw * act * (h - jnp.where(act > 0, lower, h))
+        A = A + jnp.einsum("tkd,tke->tde", Ju, Ju)
+        b = b + jnp.einsum("tkd,tk->td", Ju, jnp.einsum("tke,te->tk", Ju, z) - ru)
+        H0, H1, H2 = bands
+        A = A * (free_ch[:, None] * free_ch[None, :])
+        wh = whitening((H0 + A, H1, H2), anchor, held, delta, -(b * free_ch))
+        return wh.z_star - delta, wh.factor.ok
+
+    def one_round(carry, _):
+        z, shift, _conv, steps, fok = carry
+
+        def cond(s):
+            _z, _c, k, done, _ok = s
+            return (k < max_steps) & ~done
+
+        def body(s):
+            z, c, k, _done, ok = s
+            z_gn, ok_k = gn_step(z, shift)
+            dz = z_gn - z
+
+            def worse(b):
+                _zt, ct, i = b
+                return ~((ct < c) & jnp.isfinite(ct)) & (i < 5)
+
+            def halve(b):
+                _zt, _ct, i = b
+                zt = z + (0.5 ** (i + 1)) * dz
+                return zt, cost_of(zt, shift), i + 1
+
+            zt, ct, _i = lax.while_loop(worse, halve, (z_gn, cost_of(z_gn, shift), 0))
+            better = (ct < c) & jnp.isfinite(ct)
+            z_new, c_new = jnp.where(better, zt, z), jnp.where(better, ct, c)
+            step = jnp.max(jnp.abs(z_new - z))
+            done = (c - c_new <= rtol * jnp.maximum(c, 1e-30)) | (step <= xtol)
+            return z_new, c_new, k + 1, done, ok & ok_k
+
+        c0 = cost_of(z, shift)
+        init = (z, c0, jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(True))
+        z, c, k, done, ok = lax.while_loop(cond, body, init)
+        P = fn(edited(z))
+        err = P[points.frame, points.slot] - points.target
+        new_shift = shift - jnp.where(points.exact[:, None], err, 0.0)
+        return (z, new_shift, done, steps + k, fok & ok), c
+
+    shift0 = jnp.zeros_like(points.target)
+    init = (jnp.zeros((T, D), dt), shift0, jnp.asarray(False), jnp.asarray(0, jnp.int32))
+    init = (*init, jnp.asarray(True))
+    (z, _shift, conv, steps, fok), costs = lax.scan(one_round, init, None, length=rounds)
+    z = jnp.where(held[:, None], delta, z * free_ch)
+    return BandedSolve(z=z, converged=conv & fok, steps=steps, cost=costs[-1], factor_ok=fok)
+
+
+def _band_quad(bands, anchor: Array, v: Array) -> Array:
+    """``vᵀ (H + diag(anchor²)) v`` for the symmetric block band."""
+    H0, H1, H2 = bands
+    q = jnp.einsum("td,tde,te->", v, H0, v) + jnp.sum((anchor * v) ** 2)
+    q = q + 2.0 * jnp.einsum("td,tde,te->", v[1:], H1[1:], v[:-1])
+    return q + 2.0 * jnp.einsum("td,tde,te->", v[2:], H2[2:], v[:-2])
+
+
+def root_free_channels(fm: FeatureMap) -> np.ndarray:
+    """``(D,)`` 1 for every channel but the root's integrated ones (``root.d*``)."""
+    return np.array([0.0 if n.startswith("root.d") else 1.0 for n in fm.active_names])

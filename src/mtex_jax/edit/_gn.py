@@ -1,0 +1,164 @@
+"""Edits solved by banded Gauss–Newton (:mod:`._banded`): the default solver of
+:func:`~mtex_jax.edit.edit`, :func:`~mtex_jax.edit.edit_many` and :func:`~mtex_jax.edit.clean`.
+
+The objective is the one of :mod:`._solve` (relative texture prior, anchor, smoothness,
+constraint penalties) with two changes that make every constraint residual local to a frame:
+
+* the root's integrated channels (``root.d*``: heading-frame displacement and yaw change) are
+  held exactly (the Levenberg–Marquardt solver prices them with ``EditWeights.root``, ``10⁴``
+  by default, so they barely move there either);
+* a planted foot is held at one horizontal position per contact run (the mean of the original
+  positions over the run) and at the plant height, an absolute target per frame, instead of a
+  zero horizontal step between frames.
+
+Velocity targets couple two frames; edits with velocity targets use Levenberg–Marquardt.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..motion import FeatureMap, ground_axes
+from ._banded import PointTargets, kept_positions, root_free_channels, solve_banded
+from ._constraints import Constraints, EditWeights
+from ._prior import FrameSegments, WhitenedTextons, prior_hessian, smoothness_hessian
+from ._solve import EditResult, _finish_banded, _run_means, problem
+
+__all__ = ["join_points", "solve_edit_gn"]
+
+
+def join_points(a: PointTargets, b: PointTargets) -> PointTargets:
+    """Both sets of point targets as one."""
+    return PointTargets(
+        slot=jnp.concatenate([a.slot, b.slot]),
+        frame=jnp.concatenate([a.frame, b.frame]),
+        target=jnp.concatenate([a.target, b.target]),
+        weight=jnp.concatenate([a.weight, b.weight]),
+        exact=jnp.concatenate([a.exact, b.exact]),
+    )
+
+
+def _slots(J: int, keep: tuple[int, ...]) -> np.ndarray:
+    s = np.zeros(J, np.int32)
+    s[list(keep)] = np.arange(len(keep), dtype=np.int32)
+    return s
+
+
+def constraint_points(
+    fm: FeatureMap, cons: Constraints, keep: tuple[int, ...], P0: Array, plant_h: Array, w
+) -> tuple[PointTargets, Array]:
+    """Point targets (position targets, planted feet) and the ``(T, K)`` lower heights (floor,
+    lift) of the constraints; ``P0`` ``(T, K, 3)`` are the original kept positions."""
+    dt = P0.dtype
+    T, K = P0.shape[:2]
+    up, h0, h1 = ground_axes(fm.skeleton.up_axis)
+    slot_of = jnp.asarray(_slots(fm.skeleton.n_joints, keep))
+    one = jnp.ones((cons.joints.shape[0], 3), dt)
+    pos = PointTargets(
+        slot=slot_of[cons.joints],
+        frame=cons.frames,
+        target=cons.targets,
+        weight=w.position * one * cons.active[:, None],
+        exact=cons.active,
+    )
+    feet = list(cons.feet)
+    fslot = _slots(fm.skeleton.n_joints, keep)[feet] if feet else np.zeros(0, np.int32)
+    F = len(feet)
+    if F:
+        pl = cons.plant
+        on = jnp.concatenate([pl, jnp.zeros((1, F), bool)]) | jnp.concatenate(
+            [jnp.zeros((1, F), bool), pl]
+        )  # (T, F) frames touched by a planted step
+        Pf = P0[:, fslot]  # (T, F, 3)
+        anchor = jnp.stack([_run_means(Pf[..., c], on) for c in range(3)], axis=-1)
+        ph = jnp.concatenate([plant_h, plant_h[-1:]])
+        ph = jnp.where(jnp.concatenate([pl, jnp.zeros((1, F), bool)]), ph, jnp.roll(ph, 1, 0))
+        tgt = anchor.at[..., up].set(ph)
+        wvec = jnp.zeros(3, dt).at[jnp.array([h0, h1, up])].set(1.0) * w.plant
+        frames = jnp.repeat(jnp.arange(T, dtype=jnp.int32), F)
+        plants = PointTargets(
+            slot=jnp.tile(jnp.asarray(fslot, jnp.int32), T),
+            frame=frames,
+            target=tgt.reshape(T * F, 3),
+            weight=(on[..., None] * wvec).reshape(T * F, 3),
+            exact=on.reshape(T * F),
+        )
+        pos = join_points(pos, plants)
+    lower = jnp.where(cons.floor_on, cons.floor, -jnp.inf) * jnp.ones((T, K), dt)
+    if F:
+        lower = lower.at[:, fslot].max(cons.lift.astype(dt))
+    return pos, lower
+
+
+def solve_edit_gn(
+    fm: FeatureMap,
+    tx: WhitenedTextons,
+    seg: FrameSegments,
+    Y0: Float[Array, "T D"],
+    start_position: Float[Array, " 3"],
+    start_heading: Float[Array, ""],
+    cons: Constraints,
+    weights: EditWeights,
+    *,
+    keep: tuple[int, ...] = (),
+    extra: PointTargets | None = None,
+    rounds: int = 3,
+    max_steps: int = 8,
+    rtol: float = 1e-6,
+    xtol: float = 1e-4,
+) -> EditResult:
+    """The jit-compatible banded Gauss–Newton core (one motion; ``vmap`` it for a batch).
+
+    Args:
+        fm, tx, seg, Y0, start_position, start_heading, cons, weights: as for
+            :func:`~mtex_jax.edit.solve_edit` (velocity targets are not supported here).
+        keep: joints whose world positions are computed (with their ancestors).
+        extra: further point targets (their ``slot`` indexes the kept joints in order), e.g.
+            the guidance of swing feet when cleaning.
+        rounds: multiplier rounds; max_steps: Gauss–Newton steps per round.
+        rtol, xtol: stopping test of :func:`~mtex_jax.edit._banded.solve_banded`.
+
+    Returns:
+        :class:`EditResult` (``u`` holds the displacement ``Y − Y₀``).
+    """
+    if np.shape(cons.vel_joints)[-1]:
+        raise ValueError("the banded Gauss-Newton solver does not take velocity targets")
+    prob = problem(fm, tx, seg, Y0, start_position, start_heading, cons, weights, True, keep)
+    w, dt = prob.w, Y0.dtype
+    T, D = Y0.shape
+    bands = tuple(
+        (w.prior**2) * a + (w.smooth**2) * b
+        for a, b in zip(prior_hessian(tx, seg, dt), smoothness_hessian(T, D, dt), strict=True)
+    )
+    free_ch = jnp.asarray(root_free_channels(fm), dt)
+    anchor = w.anchor * jnp.ones((D,), dt)
+    fn: Any = lambda Y: kept_positions(fm, prob.sub, prob.keep, Y, prob.sp, prob.sh)
+    points, lower = constraint_points(fm, cons, prob.keep, fn(Y0), prob.plant_h, w)
+    if extra is not None:
+        points = join_points(points, extra)
+    sol = solve_banded(
+        fn,
+        Y0,
+        bands,
+        anchor,
+        free_ch,
+        cons.pose_mask,
+        cons.poses.astype(dt),
+        points,
+        lower,
+        w.floor,
+        fm.skeleton.up_axis,
+        rounds=rounds,
+        max_steps=max_steps,
+        rtol=rtol,
+        xtol=xtol,
+    )
+    return _finish_banded(prob, sol.z, sol.converged, sol.steps, sol.cost)
+
+
+solve_edit_gn_jit = eqx.filter_jit(solve_edit_gn)

@@ -1,0 +1,195 @@
+"""mtex_jax.edit: the banded Gauss–Newton solver, the dot-free forward kinematics, the batched
+(vmap) solve and cleaning with swing guidance (issue 17).
+
+Same small DeepMimic texture as ``test_edit.py``; references are independent computations
+(the motion package's forward kinematics, dense autodiff Jacobians, the Levenberg–Marquardt
+solver of the same objective, the motion before editing)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import mtex_jax as mj
+from mtex_jax import edit as E
+from mtex_jax.edit._banded import frame_jacobians, kept_positions, root_free_channels
+from mtex_jax.edit._fk import fk_positions
+from mtex_jax.edit._solve import sub_skeleton
+from mtex_jax.metrics import fit_contacts
+from paper_settings import PAPER
+
+FPS = 30.0
+T = 90
+
+
+@pytest.fixture(scope="module")
+def tex():
+    clips = [mj.load_example(n).resample(FPS) for n in mj.io.example_names()]
+    cfg = mj.LearnConfig(tmin=18, tmax=54, state_dim=6, fps=FPS, threshold=0.3, max_iter=5, **PAPER)
+    return mj.learn(clips, cfg)
+
+
+@pytest.fixture(scope="module")
+def contacts():
+    clips = [mj.load_example(n).resample(FPS) for n in mj.io.example_names()]
+    return fit_contacts(clips, fps=FPS)
+
+
+@pytest.fixture(scope="module")
+def syn(tex):
+    return mj.synthesize(jax.random.key(1), tex, n_frames=T)
+
+
+def _hand(tex):
+    names = tex.feature_map.skeleton.names
+    return next(n for n in names if n.lower().endswith(("hand", "wrist", "right_elbow")))
+
+
+def _positions(tex, syn, Y):
+    sp, sh = tex.feature_map.start_of(syn.motion)
+    return np.asarray(tex.feature_map.joint_positions(Y, sp, sh))
+
+
+def test_dot_free_kinematics_matches_the_motion_package_and_batches(syn):
+    m = syn.motion
+    ref = np.asarray(mj.forward_kinematics(m))
+    got = fk_positions(m.skeleton, jnp.asarray(m.root_positions), jnp.asarray(m.rotations))
+    np.testing.assert_allclose(np.asarray(got), ref, atol=1e-12)
+    rot = jnp.stack([jnp.asarray(m.rotations)] * 2)
+    root = jnp.stack([jnp.asarray(m.root_positions), jnp.asarray(m.root_positions) + 1.0])
+    many = jax.jit(jax.vmap(lambda r, q: fk_positions(m.skeleton, r, q)))(root, rot)
+    np.testing.assert_allclose(np.asarray(many[1]), ref + 1.0, atol=1e-12)
+    f = lambda q: fk_positions(m.skeleton, jnp.asarray(m.root_positions[:4]), q)
+    check_grads(f, (jnp.asarray(m.rotations[:4]),), order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
+def test_frame_jacobians_are_the_diagonal_blocks_of_the_dense_jacobian(tex, syn):
+    fm = tex.feature_map
+    sk = fm.skeleton
+    keep = (sk.index(_hand(tex)), *fit_contacts([syn.motion]).feet)
+    sub, order = sub_skeleton(sk, keep)
+    sp, sh = (jnp.asarray(a) for a in fm.start_of(syn.motion))
+    n = 6
+    Y = jnp.asarray(syn.Y[:n])
+    fn = lambda y: kept_positions(fm, sub, order, y, sp, sh)
+    free = jnp.asarray(root_free_channels(fm))
+    P, J = frame_jacobians(fn, Y, free)
+    np.testing.assert_allclose(np.asarray(P), np.asarray(fn(Y)), atol=1e-12)
+    dense = np.asarray(jax.jacfwd(fn)(Y))  # (n, K, 3, n, D)
+    f = np.asarray(free).astype(bool)
+    for t in range(n):
+        for s in range(n):
+            blk = dense[t, :, :, s][..., f]
+            if s == t:
+                np.testing.assert_allclose(np.asarray(J[t])[..., f], blk, atol=1e-10)
+            else:  # frames do not interact through the free channels
+                assert np.abs(blk).max() < 1e-12
+    assert np.abs(np.asarray(J)[..., ~f]).max() == 0.0
+    check_grads(fn, (Y,), order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
+def test_gauss_newton_and_levenberg_marquardt_agree(tex, syn):
+    sk = tex.feature_map.skeleton
+    hand = _hand(tex)
+    j, m = sk.index(hand), 45
+    P0 = _positions(tex, syn, syn.Y)
+    cons = E.make_constraints(
+        sk, T, tex.obs_dim, positions=[(hand, m, P0[m, j] + np.array([0.06, 0.04, -0.03]))]
+    )
+    gn = E.edit(tex, syn, cons, solver="gn")
+    lm = E.edit(tex, syn, cons, solver="lm")
+    assert bool(gn.converged) and gn.met, gn.report()
+    assert int(gn.steps) < int(lm.steps)
+    # the same objective; the LM solver prices the root channels with a weight of 1e4
+    np.testing.assert_allclose(np.asarray(gn.Y), np.asarray(lm.Y), atol=2e-3)
+    Pg, Pl = _positions(tex, syn, gn.Y), _positions(tex, syn, lm.Y)
+    assert np.abs(Pg - Pl).max() < 1e-3
+
+
+def test_no_constraint_leaves_the_motion_exactly_unchanged(tex, syn):
+    sk = tex.feature_map.skeleton
+    res = E.edit(tex, syn, E.make_constraints(sk, T, tex.obs_dim, floor=-10.0), solver="gn")
+    assert bool(res.converged) and res.met
+    np.testing.assert_array_equal(np.asarray(res.Y), np.asarray(syn.Y))
+
+
+def test_velocity_targets_choose_levenberg_marquardt(tex, syn):
+    sk = tex.feature_map.skeleton
+    cons = E.make_constraints(sk, T, tex.obs_dim, velocities=[(_hand(tex), 20, [0.0, 0.0, 0.0])])
+    with pytest.raises(ValueError, match="velocity"):
+        E.edit(tex, syn, cons, solver="gn")
+    with pytest.raises(ValueError, match="solver"):
+        E.edit(tex, syn, cons, solver="newton")
+
+
+def test_edit_many_is_a_vmap_batch_that_matches_single_edits(tex, syn):
+    sk = tex.feature_map.skeleton
+    hand = _hand(tex)
+    others = [mj.synthesize(jax.random.key(k), tex, n_frames=T) for k in (7, 8)]
+    motions = [syn, *others]
+    cons = []
+    for i, s in enumerate(motions):
+        P0 = _positions(tex, s, s.Y)
+        tgt = P0[40 + i, sk.index(hand)] + [0.0, 0.04, 0.02]
+        cons.append(E.make_constraints(sk, T, tex.obs_dim, positions=[(hand, 40 + i, tgt)]))
+    many = E.edit_many(tex, motions, cons)
+    assert many.Y.shape == (3, T, tex.obs_dim)
+    for i, (s, c) in enumerate(zip(motions, cons, strict=True)):
+        one = E.edit(tex, s, c)
+        np.testing.assert_allclose(np.asarray(many.Y[i]), np.asarray(one.Y), atol=1e-8)
+        assert bool(many.converged[i]) == bool(one.converged)
+
+
+def test_float32_gauss_newton_edit(tex, syn):
+    sk = tex.feature_map.skeleton
+    hand = _hand(tex)
+    P0 = _positions(tex, syn, syn.Y)
+    sp, sh = tex.feature_map.start_of(syn.motion)
+    cons = E.make_constraints(
+        sk, T, tex.obs_dim, positions=[(hand, 45, P0[45, sk.index(hand)] + [0.0, 0.05, 0.0])]
+    )
+    res = E.edit(
+        tex,
+        jnp.asarray(syn.Y, jnp.float32),
+        cons,
+        segments=E.segments_of(tex, syn),
+        start_position=sp,
+        start_heading=sh,
+        solver="gn",
+    )
+    assert res.Y.dtype == jnp.float32 and bool(res.finite)
+    assert float(res.position_error[0]) < 0.005
+
+
+def test_swing_guidance_is_continuous_and_meets_the_plants(tex, syn, contacts):
+    P0 = _positions(tex, syn, syn.Y)
+    labels, plants = E.contact_plants(contacts, syn.motion)
+    tgt, swing = E.swing_guidance(contacts, P0, labels)
+    up = tex.feature_map.skeleton.up_axis
+    for foot, a, b, h in plants:
+        k = contacts.feet.index(foot)
+        assert not swing[a : b + 1, k].any()
+        horiz = [i for i in range(3) if i != up]
+        np.testing.assert_allclose(tgt[a : b + 1, k][:, horiz].std(axis=0), 0.0, atol=1e-12)
+        np.testing.assert_allclose(tgt[a : b + 1, k, up], h, atol=1e-12)
+    # guidance moves no faster than the original plus the correction's smooth blend
+    for k, foot in enumerate(contacts.feet):
+        jump = np.linalg.norm(np.diff(tgt[:, k], axis=0), axis=-1)
+        orig = np.linalg.norm(np.diff(P0[:, foot], axis=0), axis=-1)
+        assert np.isfinite(jump).all() and jump.max() < orig.max() + 0.05
+
+
+def test_gauss_newton_clean_stops_the_planted_feet(tex, syn, contacts):
+    res = E.clean(tex, syn, contacts)
+    assert bool(res.edit.finite)
+    ((_, s0),) = contacts.heights_and_speeds(syn.motion)
+    ((_, s1),) = contacts.heights_and_speeds(res.motion)
+    lab = res.labels
+    assert lab.any()
+    assert s1[lab].mean() < 0.2 * s0[lab].mean(), (s0[lab].mean(), s1[lab].mean())
+    assert s1[lab].max() < 0.25 * s0[lab].max(), (s0[lab].max(), s1[lab].max())
+    assert res.penetration_after.max_depth <= 0.01
+    assert "converged" in res.edit.report()
