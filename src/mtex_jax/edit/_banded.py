@@ -33,6 +33,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..motion import FeatureMap, Skeleton
 from ._fk import fk_positions
+from ._prior import smoothness_hessian
 from ._whiten import whitening
 
 __all__ = [
@@ -123,6 +124,8 @@ def solve_banded(
     lower_weight: Float[Array, ""],
     up: int,
     *,
+    move_root: tuple[tuple[int, int], tuple[int, int]] | None = None,
+    root_smooth: float | Array = 0.0,
     rounds: int = 3,
     max_steps: int = 8,
     rtol: float = 1e-6,
@@ -143,6 +146,13 @@ def solve_banded(
         lower: ``(T, K)`` lowest allowed height of each kept joint (``-inf``: none).
         lower_weight: per metre, the one-sided height penalty.
         up: the up axis.
+        move_root: ``((c0, c1), (h0, h1))``: let the root move horizontally. Columns ``c0, c1`` of
+            ``z`` (two held channels, e.g. ``root.d*``) then carry a world offset (metres)
+            of the whole figure along axes ``h0, h1`` at each frame, priced by
+            ``root_smooth`` per metre of its second difference (plus a unit ridge); the
+            caller turns it into the root channels (:func:`mtex_jax.edit._gn.apply_shift`).
+            Frames stay independent: the offset moves every joint of its frame alike.
+        root_smooth: weight of the offset's second difference.
         rounds: multiplier rounds (``≥ 1``).
         max_steps: Gauss–Newton steps per round.
         rtol: relative change of the cost below which a round stops.
@@ -154,6 +164,21 @@ def solve_banded(
     dt = Y0.dtype
     T, D = Y0.shape
     bands, anchor = _masked_bands(bands, anchor, free_ch)
+    var_ch = free_ch
+    if move_root is not None:
+        (c0, c1), _ = move_root
+        e = jnp.zeros((D,), dt).at[jnp.array([c0, c1])].set(1.0)
+        ee = jnp.asarray(root_smooth, dt) ** 2 * jnp.diag(e)
+        sm = smoothness_hessian(T, D, dt)
+        bands = (bands[0] + sm[0] * ee, bands[1] + sm[1] * ee, bands[2] + sm[2] * ee)
+        var_ch = free_ch + e
+
+    def offset(z: Array) -> Array:  # (T, 1, 3) world offset of every joint
+        if move_root is None:
+            return jnp.zeros((T, 1, 3), dt)
+        (c0, c1), (h0, h1) = move_root
+        return jnp.zeros((T, 1, 3), dt).at[:, 0, h0].set(z[:, c0]).at[:, 0, h1].set(z[:, c1])
+
     delta = jnp.where(held[:, None], poses - Y0, 0.0)
     w2 = points.weight**2
     lw = jnp.asarray(lower_weight, dt)
@@ -165,14 +190,18 @@ def solve_banded(
         return P[points.frame, points.slot] - points.target - shift  # (P, 3)
 
     def cost_of(z: Array, shift: Array) -> Array:
-        P = fn(edited(z))
+        P = fn(edited(z)) + offset(z)
         r = point_res(P, shift)
         low = jnp.maximum(lower - P[..., up], 0.0)
-        hz = _band_quad(bands, anchor, jnp.where(held[:, None], delta, z * free_ch))
+        hz = _band_quad(bands, anchor, jnp.where(held[:, None], delta, z * var_ch))
         return 0.5 * (hz + jnp.sum(w2 * r * r) + jnp.sum((lw * low) ** 2))
 
     def gn_step(z: Array, shift: Array) -> tuple[Array, Array]:
         P, J = frame_jacobians(fn, edited(z), free_ch)
+        P = P + offset(z)
+        if move_root is not None:
+            (c0, c1), (h0, h1) = move_root
+            J = J.at[:, :, h0, c0].set(1.0).at[:, :, h1, c1].set(1.0)
         r = point_res(P, shift)
         Jp = J[points.frame, points.slot]  # (P, 3, D)
         zp = z[points.frame]
@@ -188,8 +217,8 @@ def solve_banded(
         A = A + jnp.einsum("tkd,tke->tde", Ju, Ju)
         b = b + jnp.einsum("tkd,tk->td", Ju, jnp.einsum("tke,te->tk", Ju, z) - ru)
         H0, H1, H2 = bands
-        A = A * (free_ch[:, None] * free_ch[None, :])
-        wh = whitening((H0 + A, H1, H2), anchor, held, delta, -(b * free_ch))
+        A = A * (var_ch[:, None] * var_ch[None, :])
+        wh = whitening((H0 + A, H1, H2), anchor, held, delta, -(b * var_ch))
         return wh.z_star - delta, wh.factor.ok
 
     def one_round(carry, _):
@@ -220,10 +249,10 @@ def solve_banded(
             done = (c - c_new <= rtol * jnp.maximum(c, 1e-30)) | (step <= xtol)
             return z_new, c_new, k + 1, done, ok & ok_k
 
-        c0 = cost_of(z, shift)
-        init = (z, c0, jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(True))
+        cost0 = cost_of(z, shift)
+        init = (z, cost0, jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(True))
         z, c, k, done, ok = lax.while_loop(cond, body, init)
-        P = fn(edited(z))
+        P = fn(edited(z)) + offset(z)
         err = P[points.frame, points.slot] - points.target
         new_shift = shift - jnp.where(points.exact[:, None], err, 0.0)
         return (z, new_shift, done, steps + k, fok & ok), c
@@ -232,7 +261,7 @@ def solve_banded(
     init = (jnp.zeros((T, D), dt), shift0, jnp.asarray(False), jnp.asarray(0, jnp.int32))
     init = (*init, jnp.asarray(True))
     (z, _shift, conv, steps, fok), costs = lax.scan(one_round, init, None, length=rounds)
-    z = jnp.where(held[:, None], delta, z * free_ch)
+    z = jnp.where(held[:, None], delta, z * var_ch)
     return BandedSolve(z=z, converged=conv & fok, steps=steps, cost=costs[-1], factor_ok=fok)
 
 

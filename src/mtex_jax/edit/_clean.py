@@ -14,6 +14,7 @@ foot stays a swing foot), the floor applies to every moving joint, and
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 from typing import Any
 
@@ -97,7 +98,7 @@ def contact_plants(
         raise ValueError(f"max_gap must be an integer >= 0, got {max_gap!r}")
     for k in range(len(contacts.feet)):  # close gaps of at most max_gap steps between runs
         idx = np.flatnonzero(labels[:, k])
-        for a, b in zip(idx[:-1], idx[1:], strict=True):
+        for a, b in itertools.pairwise(idx):
             if 1 < b - a <= max_gap + 1:
                 labels[a:b, k] = True
     for k, foot in enumerate(contacts.feet):
@@ -227,6 +228,8 @@ def clean(
     max_gap: int | None = None,
     solver: str = "gn",
     swing_weight: float = 100.0,
+    move_root: bool = True,
+    root_smooth: float = 1000.0,
     max_steps: int | None = None,
     rtol: float = 1e-3,
     cg_steps: int = 1000,
@@ -256,7 +259,12 @@ def clean(
             Levenberg–Marquardt with conjugate gradients, plant residuals on steps, root free;
             slow: minutes for 10 s of motion).
         swing_weight: per metre, the swing feet's guidance targets (``"gn"`` only).
-        max_steps: solver steps (default 8 for ``"gn"``, 30 for ``"lm"``).
+        move_root: ``"gn"``: let the root's horizontal trajectory change (a smooth world
+            offset per frame, so the body follows planted feet instead of the legs stretching
+            to reach them); ``False`` holds it.
+        root_smooth: per metre of the root offset's second difference (one unit per 1 mm by
+            default: the offset changes the root's acceleration little).
+        max_steps: solver steps (default 10 for ``"gn"``, 30 for ``"lm"``).
         rtol: ``"gn"`` stops (and reports convergence) when a step lowers the cost by less
             than this fraction (or moves no variable by more than ``1e-4``). One round, no
             multipliers: plants are penalties (``EditWeights.plant``), measured in the result.
@@ -355,11 +363,13 @@ def clean(
             w,
             keep=keep,
             extra=extra,
+            move_root=move_root,
+            root_smooth=root_smooth,
             rounds=1,
-            max_steps=8 if max_steps is None else max_steps,
+            max_steps=10 if max_steps is None else max_steps,
             rtol=rtol,
         )
-    out = fm.decode(res.Y, sp, sh)
+    out = fm.decode(res.Y, res.start_position, sh)
     nan = float("nan")
     return CleanResult(
         motion=out,

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ..motion import Skeleton, quat_to_matrix
 
@@ -31,23 +31,24 @@ def _mv(a: Array, v: Array) -> Array:
 
 def fk_positions(
     skeleton: Skeleton,
-    root_positions: Float[Array, "T 3"],
-    rotations: Float[Array, "T J 4"],
-    local_positions: Float[Array, "T J 3"] | None = None,
+    root_positions: Float[ArrayLike, "T 3"],
+    rotations: Float[ArrayLike, "T J 4"],
+    local_positions: Float[ArrayLike, "T J 3"] | None = None,
 ) -> Float[Array, "T J 3"]:
     """World joint positions, as :func:`mtex_jax.motion.forward_kinematics_arrays` (one tree
     level at a time; dtype follows the input), safe under ``vmap``."""
+    rotations = jnp.asarray(rotations)
     T, J = rotations.shape[:2]
     R = quat_to_matrix(rotations)  # (T, J, 3, 3)
     if local_positions is None:
         off = jnp.asarray(skeleton.offsets_array, rotations.dtype)
         trans = jnp.broadcast_to(off, (T, J, 3))
     else:
-        trans = local_positions.astype(rotations.dtype)
+        trans = jnp.asarray(local_positions, rotations.dtype)
     parents = np.asarray(skeleton.parents)
     depth = np.asarray(skeleton.depth())
-    world_r = [R[:, 0]] + [None] * (J - 1)
-    world_p = [root_positions.astype(rotations.dtype)] + [None] * (J - 1)
+    world_r: list[Array] = [R[:, 0]] * J  # filled level by level (parents come first)
+    world_p: list[Array] = [jnp.asarray(root_positions, rotations.dtype)] * J
     for d in range(1, int(depth.max(initial=0)) + 1):
         idx = np.nonzero(depth == d)[0]
         par = parents[idx]

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..motion import FeatureMap, ground_axes
+from ..motion import FeatureMap, ground_axes, quat_conj, quat_rotate, yaw_quat
 from ._banded import PointTargets, kept_positions, root_free_channels, solve_banded
 from ._constraints import Constraints, EditWeights
 from ._prior import FrameSegments, WhitenedTextons, prior_hessian, smoothness_hessian
@@ -107,6 +107,8 @@ def solve_edit_gn(
     *,
     keep: tuple[int, ...] = (),
     extra: PointTargets | None = None,
+    move_root: bool = False,
+    root_smooth: float = 10.0,
     rounds: int = 3,
     max_steps: int = 8,
     rtol: float = 1e-6,
@@ -120,6 +122,10 @@ def solve_edit_gn(
         keep: joints whose world positions are computed (with their ancestors).
         extra: further point targets (their ``slot`` indexes the kept joints in order), e.g.
             the guidance of swing feet when cleaning.
+        move_root: let the root's horizontal trajectory change too, as a smooth world offset
+            per frame (:func:`~mtex_jax.edit._banded.solve_banded`); the root channels and the
+            start position of the result are re-derived from it (``result.start_position``).
+        root_smooth: per metre of the offset's second difference (with ``move_root``).
         rounds: multiplier rounds; max_steps: Gauss–Newton steps per round.
         rtol, xtol: stopping test of :func:`~mtex_jax.edit._banded.solve_banded`.
 
@@ -131,16 +137,16 @@ def solve_edit_gn(
     prob = problem(fm, tx, seg, Y0, start_position, start_heading, cons, weights, True, keep)
     w, dt = prob.w, Y0.dtype
     T, D = Y0.shape
-    bands = tuple(
-        (w.prior**2) * a + (w.smooth**2) * b
-        for a, b in zip(prior_hessian(tx, seg, dt), smoothness_hessian(T, D, dt), strict=True)
-    )
+    pr, sm = prior_hessian(tx, seg, dt), smoothness_hessian(T, D, dt)
+    bands = tuple((w.prior**2) * pr[i] + (w.smooth**2) * sm[i] for i in range(3))
+    bands = (bands[0], bands[1], bands[2])
     free_ch = jnp.asarray(root_free_channels(fm), dt)
     anchor = w.anchor * jnp.ones((D,), dt)
     fn: Any = lambda Y: kept_positions(fm, prob.sub, prob.keep, Y, prob.sp, prob.sh)
     points, lower = constraint_points(fm, cons, prob.keep, fn(Y0), prob.plant_h, w)
     if extra is not None:
         points = join_points(points, extra)
+    roots = root_channels(fm) if move_root else None
     sol = solve_banded(
         fn,
         Y0,
@@ -153,12 +159,57 @@ def solve_edit_gn(
         lower,
         w.floor,
         fm.skeleton.up_axis,
+        move_root=roots,
+        root_smooth=root_smooth,
         rounds=rounds,
         max_steps=max_steps,
         rtol=rtol,
         xtol=xtol,
     )
-    return _finish_banded(prob, sol.z, sol.converged, sol.steps, sol.cost)
+    z, sp = sol.z, prob.sp
+    Y = jnp.where(cons.pose_mask[:, None], cons.poses.astype(dt), Y0 + z * free_ch)
+    if roots is not None:
+        Y, sp = apply_shift(fm, Y, sp, prob.sh, z[:, list(roots[0])])
+    prob = eqx.tree_at(lambda p: p.sp, prob, sp)
+    return _finish_banded(prob, Y, z, sol.converged, sol.steps, sol.cost)
+
+
+def root_channels(fm: FeatureMap) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """``((c0, c1), (h0, h1))``: the columns of ``root.d*`` in ``Y`` and their world axes
+    (``None`` if either channel or ``root.dyaw`` is constant, i.e. not in ``Y``)."""
+    ax = "xyz"
+    _, h0, h1 = ground_axes(fm.skeleton.up_axis)
+    names = fm.active_names
+    want = (f"root.d{ax[h0]}", f"root.d{ax[h1]}", "root.dyaw")
+    if not all(n in names for n in want):
+        return None
+    return (names.index(want[0]), names.index(want[1])), (h0, h1)
+
+
+def apply_shift(
+    fm: FeatureMap, Y: Array, sp: Array, sh: Array, dx: Float[Array, "T 2"]
+) -> tuple[Array, Array]:
+    """Move the root by a world horizontal offset ``dx`` per frame: the new ``root.d*``
+    channels (heading frame of the previous frame, z-scored) and start position."""
+    up, h0, h1 = ground_axes(fm.skeleton.up_axis)
+    names = fm.active_names
+    (c0, c1), _ = root_channels(fm) or ((0, 0), (h0, h1))
+    iy = names.index("root.dyaw")
+    off, sc = jnp.asarray(fm.offset, Y.dtype), jnp.asarray(fm.scale, Y.dtype)
+    act = np.asarray(fm.active)
+    dyaw = Y[:, iy] * sc[act[iy]] + off[act[iy]]
+    psi = sh + jnp.concatenate([jnp.zeros((1,), Y.dtype), jnp.cumsum(dyaw[1:])])
+    step = jnp.zeros((Y.shape[0] - 1, 3), Y.dtype)
+    step = step.at[:, h0].set(dx[1:, 0] - dx[:-1, 0]).at[:, h1].set(dx[1:, 1] - dx[:-1, 1])
+    e_up = jnp.zeros((3,), Y.dtype).at[up].set(1.0)
+    local = quat_rotate(quat_conj(yaw_quat(psi[:-1], e_up)), step)  # heading of frame t − 1
+    d0 = local[:, h0] / sc[act[c0]]
+    d1 = local[:, h1] / sc[act[c1]]
+    d0 = jnp.concatenate([d0[:1], d0])  # frame 0 repeats frame 1 (decoding ignores it)
+    d1 = jnp.concatenate([d1[:1], d1])
+    Y = Y.at[:, c0].add(d0).at[:, c1].add(d1)
+    sp = sp.at[h0].add(dx[0, 0]).at[h1].add(dx[0, 1])
+    return Y, sp
 
 
 solve_edit_gn_jit = eqx.filter_jit(solve_edit_gn)

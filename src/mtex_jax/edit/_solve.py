@@ -72,13 +72,17 @@ class EditResult(eqx.Module):
         plant_slide: largest horizontal speed (m/s) of a planted foot over its planted steps.
         plant_height_error: largest ``|h − plant height|`` over planted steps, metres.
         floor_depth: largest depth of any joint below the floor, metres (0 without a floor).
-        u: ``(T, D)`` the whitened variables of the solution (a warm start).
+        u: ``(T, D)`` the solver's variables at the solution (Levenberg–Marquardt: whitened;
+            Gauss–Newton: the displacement of ``Y``, with the root offset when it moved).
+        start_position: ``(3,)`` root position of frame 0 for decoding ``Y`` (changed only
+            when the solve moved the root trajectory).
         finite: whether the solution was finite.
         used_bfgs: whether the BFGS fallback ran.
     """
 
     Y: Float[Array, "T D"]
     u: Float[Array, "T D"]
+    start_position: Float[Array, " 3"]
     converged: Bool[Array, ""]
     steps: Int[Array, ""]
     cost: Float[Array, ""]
@@ -365,6 +369,7 @@ def _finish(prob: _Problem, z, shift, ok, steps, used_bfgs) -> EditResult:
     cost = _sq(prob.residuals(z, shift))
     m = _measure(prob, prob.edited(z))
     return EditResult(
+        start_position=prob.sp,
         Y=jnp.where(finite, prob.edited(z), prob.Y0),
         u=z,
         converged=jnp.asarray(ok) & finite,
@@ -376,12 +381,15 @@ def _finish(prob: _Problem, z, shift, ok, steps, used_bfgs) -> EditResult:
     )
 
 
-def _finish_banded(prob: _Problem, z: Array, ok: Array, steps: Array, cost: Array) -> EditResult:
-    """Measure a banded Gauss–Newton solution (``z`` the displacement of ``Y``)."""
-    c = prob.cons
-    finite = jnp.all(jnp.isfinite(z))
-    Y = jnp.where(c.pose_mask[:, None], c.poses, prob.Y0 + jnp.where(finite, z, 0.0))
+def _finish_banded(
+    prob: _Problem, Y: Array, z: Array, ok: Array, steps: Array, cost: Array
+) -> EditResult:
+    """Measure a banded Gauss–Newton solution ``Y`` (``z``: the solver's variables; the start
+    position is ``prob.sp``)."""
+    finite = jnp.all(jnp.isfinite(Y)) & jnp.all(jnp.isfinite(z))
+    Y = jnp.where(finite, Y, prob.Y0)
     return EditResult(
+        start_position=jnp.where(finite, prob.sp, jnp.zeros_like(prob.sp)),
         Y=Y,
         u=jnp.where(finite, z, 0.0),
         converged=jnp.asarray(ok) & finite,
