@@ -245,7 +245,7 @@ def report(r: dict[str, Any]) -> str:
         f"{c['loglik_lost_per_frame']:.3f} nats per frame. Solver (banded Gauss–Newton, "
         "root trajectory free as a smooth offset; converged = a step lowered the cost by "
         f"less than 0.1 %): converged {sum(c['converged'])} of {len(c['converged'])} (steps "
-        f"{c['steps']}, cap 10); plants and floor met to 1 mm in {sum(c['met'])}; largest "
+        f"{c['steps']}, cap 12); plants and floor met to 1 mm in {sum(c['met'])}; largest "
         f"planted-foot speed after {max(c['plant_slide']):.3g} m/s, largest plant height "
         f"error {1e3 * max(c['plant_height_error']):.1f} mm; share of (step, foot) planted "
         f"{np.mean(c['contact_share']):.2f}.",

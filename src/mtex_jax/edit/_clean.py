@@ -264,7 +264,7 @@ def clean(
             to reach them); ``False`` holds it.
         root_smooth: per metre of the root offset's second difference (one unit per 1 mm by
             default: the offset changes the root's acceleration little).
-        max_steps: solver steps (default 10 for ``"gn"``, 30 for ``"lm"``).
+        max_steps: solver steps (default 12 for ``"gn"``, 30 for ``"lm"``).
         rtol: ``"gn"`` stops (and reports convergence) when a step lowers the cost by less
             than this fraction (or moves no variable by more than ``1e-4``). One round, no
             multipliers: plants are penalties (``EditWeights.plant``), measured in the result.
@@ -366,7 +366,7 @@ def clean(
             move_root=move_root,
             root_smooth=root_smooth,
             rounds=1,
-            max_steps=10 if max_steps is None else max_steps,
+            max_steps=12 if max_steps is None else max_steps,
             rtol=rtol,
         )
     out = fm.decode(res.Y, res.start_position, sh)
