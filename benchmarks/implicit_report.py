@@ -231,7 +231,8 @@ def _notes(res: dict) -> list[str]:
         f"{1000 * syn['reference_mean']:.0f} mm; it replays the database), the tree's "
         f"{1000 * tree_syn['step_mean']:.0f} mm: its successors come from coarser matches and "
         "the motion jumps. With the default `SynthesisConfig()` (issue 18: velocity form, "
-        "blending, K = 16 walks, continuation, run cap) the tree's synthesis moves "
+        "blending, K = 16 walks with the hubness-corrected kernel, continuation, run cap) "
+        "the tree's synthesis moves "
         f"{1000 * def_syn['step_mean']:.0f} mm (p95 {1000 * def_syn['step_p95']:.0f} mm); "
         "realism and copying on the quality split: `implicit_quality.md`."
     )

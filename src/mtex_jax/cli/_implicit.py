@@ -270,7 +270,7 @@ def register(subparsers) -> None:
         default=None,
         help="apply the example's change of pose (on, default) or jump to its pose (off)",
     )
-    s.add_argument("--blend", type=int, default=None, help="transition blend frames (default 4)")
+    s.add_argument("--blend", type=int, default=None, help="transition blend frames (default 6)")
     s.add_argument(
         "--lookahead", type=int, default=None, help="frames a searched example must continue"
     )

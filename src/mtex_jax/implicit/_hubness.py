@@ -14,6 +14,12 @@ example by its distance minus half its own neighbourhood radius,
 (with unit-norm vectors this is the published ``2 cos − r``), so an example in a dense region
 (small ``r_i``) must be correspondingly nearer to be chosen. The neighbours ``kNN(i)`` exclude
 the windows of the same clip within ``d`` frames (overlapping windows of one take).
+
+The synthesis uses ``s = ‖Ψ_i − Φ‖² − h r_i`` with a weight ``h``
+(``SynthesisConfig.hubness``). ``r_i`` is heavy-tailed (isolated, unusual windows have radii
+many times the median), so the full CSLS weight ``h = ½`` also favours poor matches and the
+transitions get rough; the default ``h = 0.2`` was chosen on validation folds of the
+training clips (``benchmarks/results/implicit_quality_validation*.md``).
 """
 
 from __future__ import annotations
