@@ -18,9 +18,9 @@ from ..motion import FeatureMap
 from ._config import LearnConfig
 from ._durations import fit_durations
 from ._fit import _SolveOptions, _texton_from_stats_impl
+from ._frame_terms import _frame_terms_impl
 from ._init import Segs
 from ._model import MotionTexture
-from ._scores import _segment_scores_impl
 from ._segment import _segment_batch
 from ._stats import _dynamics_stats_impl, _frame_stats_impl, _subspace_impl
 from ._texton import Texton
@@ -89,24 +89,29 @@ _fit_all = eqx.filter_jit(_fit_all_impl)
 
 
 @eqx.filter_jit
-def _rows_score(tex: Texton, Y: Array, rows: Array, w: Array) -> Array:
-    """Σ_r w_r score_{label_r}(start_r, end_r) over segment rows (seq, start, length, label)."""
-    sc = jax.vmap(lambda y: _segment_scores_impl(tex, y))(Y)  # arrays (S, N, T[+1])
+def _rows_score(tex: Texton, Y: Array, rows: Array, w: Array, width: int) -> Array:
+    """``Σ_r w_r score_{label_r}(start_r, end_r)`` over segment rows ``(seq, start, length,
+    label)``: each segment gathered into a ``(width, D)`` slab and scored by its own texton
+    only (the frame terms of the blocked kernel on the slab), so the work is
+    ``O(rows × width)``, independent of the number of textons."""
     T = Y.shape[1]
-    s, i = rows[:, 0], rows[:, 3]
-    b = rows[:, 1]
-    e = rows[:, 1] + rows[:, 2] - 1
-    dyn = (
-        sc.cum_dyn[s, i, e + 1]
-        - sc.cum_dyn[s, i, jnp.minimum(b + 2, T)]
-        + (e - b - 1).astype(Y.dtype) * sc.dyn_offset[s, i]
-    )
-    obs = (
-        sc.cum_obs[s, i, e + 1]
-        - sc.cum_obs[s, i, b]
-        + (e - b + 1).astype(Y.dtype) * sc.obs_offset[s, i]
-    )
-    vals = sc.init[s, i, b] + dyn + obs
+    seq, start, length, lab = rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3]
+    off = jnp.arange(width)
+    G = Y[seq[:, None], jnp.clip(start[:, None] + off[None, :], 0, T - 1)]  # (R, W, D)
+    tex_r = jax.tree.map(lambda a: a[lab, None], tex)  # (R, 1, ...): a stack of one each
+
+    def one(t: Texton, g: Array, n: Array) -> Array:
+        dyn, obs, init = _frame_terms_impl(t, g, width, with_init=True, check=False)
+        dyn_in = (off >= 2) & (off < n)
+        return (
+            init[0, 0]
+            + jnp.sum(jnp.where(dyn_in, dyn[0], 0.0))
+            + jnp.sum(jnp.where(off < n, obs[0], 0.0))
+        )
+
+    # lax.map, not vmap: the kernel's per-texton Cholesky factorisations would become one
+    # batched LAPACK call, which can deadlock jaxlib's CPU thread pool on 2 cores
+    vals = jax.lax.map(lambda a: one(*a), (tex_r, G, length))
     return jnp.sum(jnp.where(w > 0, vals, 0.0) * w)
 
 
@@ -210,6 +215,16 @@ class _Runner:
         # model selection visits every smaller texton count: stacks are padded to at least
         # this many textons there, so that each step reuses the compiled programs
         self.min_cap = 1
+        self._caps: dict[str, int] = {}
+
+    def _cap(self, name: str, want: int) -> int:
+        """A padded size ``>= want`` for the program ``name``: the previous one while it is at
+        most twice ``want``, so that a count that shrinks a little (segments, pruned textons)
+        reuses the compiled program instead of compiling a smaller one."""
+        last = self._caps.get(name, 0)
+        cap = last if want <= last <= 2 * want else want
+        self._caps[name] = cap
+        return cap
 
     def durations(self, segs: Segs, n_textons: int) -> np.ndarray | None:
         """Per-texton duration log-probabilities fitted to ``segs`` (``None``: flat)."""
@@ -226,7 +241,7 @@ class _Runner:
         """Fit all textons; the stack is padded to a power of two (slots past ``n_textons``
         are unused) so that a changing number of textons recompiles rarely."""
         n = len(segs)
-        cap = _capacity(n)
+        cap = self._cap("rows", _capacity(n))
         rows = np.zeros((cap, 4), dtype=np.int64)
         rows[:n] = segs
         valid = np.arange(cap) < n
@@ -235,7 +250,7 @@ class _Runner:
             self.Y,
             jnp.asarray(rows),
             jnp.asarray(valid),
-            max(_capacity(n_textons), self.min_cap),
+            self._cap("textons", max(_capacity(n_textons), self.min_cap)),
             self.tmax,
             self.config.state_dim,
             float(self.config.sigma2_floor),
@@ -251,7 +266,7 @@ class _Runner:
         # (N_t changes rarely, so the extra compilations are few); up to _PAD_E_STEP textons
         # the stack is padded to a power of two (model selection visits every small N_t)
         n = M.shape[0]
-        cap = max(_capacity(n), self.min_cap) if n <= _PAD_E_STEP else n
+        cap = self._cap("e_step", max(_capacity(n), self.min_cap)) if n <= _PAD_E_STEP else n
         tex = jax.tree.map(lambda a: a[jnp.minimum(jnp.arange(cap), n - 1)], tex)
         log_M, log_pi = _padded_logs(M, pi, cap)
         if log_d is not None and cap > n:
@@ -288,14 +303,16 @@ class _Runner:
         """log P(Y, segmentation | model): segment scores plus initial/transition (and
         duration) terms."""
         n = len(segs)
-        cap = _capacity(n)
+        cap = self._cap("rows", _capacity(n))
         rows = np.zeros((cap, 4), dtype=np.int64)
         rows[:, 2] = 2  # padding rows: a valid 2-frame segment, weight 0
         rows[:n] = segs
         w = np.zeros(cap)
         w[:n] = 1.0
-        tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)
-        seg_ll = float(_rows_score(tex, self.Y, jnp.asarray(rows), jnp.asarray(w, self.Y.dtype)))
+        rows[:, 3] = np.minimum(rows[:, 3], M.shape[0] - 1)
+        seg_ll = float(
+            _rows_score(tex, self.Y, jnp.asarray(rows), jnp.asarray(w, self.Y.dtype), self.tmax)
+        )
         log_M, log_pi = np.log(M), np.log(pi)
         total = seg_ll
         if log_d is not None:

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._scores import SegmentScorer, _segment_scores_impl, segment_scores
+from ._scores import SegmentScorer, _batch_scores_impl, segment_scores
 from ._texton import Texton
 
 __all__ = ["Segmentation", "segment", "segment_scorer", "viterbi_segments"]
@@ -331,8 +331,9 @@ def _segment_batch(
     if not textons.is_stacked:
         textons = jax.tree.map(lambda a: a[None], textons)
 
-    def one(y, n):
-        sc = _segment_scores_impl(textons, y)
+    sc = _batch_scores_impl(textons, Y)
+
+    def one(sc, n):
         return viterbi_segments(sc, log_M, log_pi, n, tmin, tmax, log_durations)
 
-    return jax.vmap(one)(Y, nf)
+    return jax.vmap(one)(sc, nf)

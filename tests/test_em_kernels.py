@@ -1,0 +1,64 @@
+"""The batched kernels of EM against the per-sequence scorer: the E-step's segment scores of
+sequences laid end to end (``_batch_scores_impl``) and the objective's per-segment scores
+(``_rows_score``), for each observation model."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mtex_jax.texture import fit_texton, segment_scores, stack_textons
+from mtex_jax.texture._em import _rows_score
+from mtex_jax.texture._scores import _batch_scores_impl
+
+
+def _smooth(rng, T, D):
+    t = np.arange(T)[:, None]
+    y = np.sin(rng.uniform(0.05, 0.3, (1, D)) * t + rng.uniform(0, 6, (1, D)))
+    return y + 0.05 * rng.normal(size=(T, D)) + np.cumsum(0.02 * rng.normal(size=(T, D)), 0)
+
+
+def _data(observation: str):
+    rng = np.random.default_rng(3)
+    D = 6
+    k = D if observation == "full" else 2
+    texs = [
+        fit_texton(jnp.asarray(_smooth(rng, 150, D)), state_dim=k, observation=observation)
+        for _ in range(3)
+    ]
+    Y = np.zeros((3, 140, D))  # three sequences, two of them padded with zeros
+    for s, n in enumerate([90, 140, 117]):
+        Y[s, :n] = _smooth(rng, n, D)
+    return stack_textons(texs), Y
+
+
+@pytest.mark.parametrize("observation", ["paper", "residual", "full"])
+def test_batch_scores_equal_per_sequence_scores(observation):
+    tex, Y = _data(observation)
+    batch = jax.jit(_batch_scores_impl)(tex, jnp.asarray(Y))
+    rng = np.random.default_rng(0)
+    for s in range(Y.shape[0]):
+        one = segment_scores(tex, jnp.asarray(Y[s]))
+        sc = jax.tree.map(lambda a, s=s: a[s], batch)
+        b = rng.integers(0, 120, 200)
+        e = np.minimum(b + rng.integers(1, 60, 200), Y.shape[1] - 1)
+        i = rng.integers(0, 3, 200)
+        want, got = np.asarray(one.score(b, e, i)), np.asarray(sc.score(b, e, i))
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-8)
+        # the initial term at the last frame has no successor frame: -inf, as per sequence
+        assert np.all(np.isneginf(np.asarray(sc.init)[:, -1]))
+
+
+@pytest.mark.parametrize("observation", ["paper", "residual", "full"])
+def test_rows_score_is_the_sum_of_own_texton_segment_scores(observation):
+    tex, Y = _data(observation)
+    rows = np.array([[0, 0, 40, 1], [0, 40, 50, 2], [1, 3, 60, 0], [2, 50, 67, 1], [0, 0, 2, 0]])
+    w = np.array([1.0, 1.0, 1.0, 1.0, 0.0])  # the last row is padding (weight 0)
+    got = float(_rows_score(tex, jnp.asarray(Y), jnp.asarray(rows), jnp.asarray(w), 70))
+    want = 0.0
+    for (s, b, n, i), wr in zip(rows, w, strict=True):
+        if wr:
+            want += float(segment_scores(tex, jnp.asarray(Y[s])).score(b, b + n - 1, i))
+    np.testing.assert_allclose(got, want, rtol=1e-10)
