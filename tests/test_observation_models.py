@@ -321,6 +321,32 @@ def test_learn_defaults_are_stable_residual_with_durations():
         assert np.abs(out).max() < 20 * span
 
 
+def test_synthesis_draws_lengths_from_the_fitted_durations():
+    import equinox as eqx
+
+    tex = mj.learn(_clips(2), mj.LearnConfig(tmin=20, tmax=60, max_iter=2))
+    assert tex.log_durations is not None
+    # every texton's duration distribution a point mass at 33 frames
+    point = np.full(tex.log_durations.shape, -np.inf)
+    point[:, 33 - 20] = 0.0
+    tex33 = eqx.tree_at(lambda t: t.log_durations, tex, jnp.asarray(point))
+    syn = mj.synthesize(jax.random.key(0), tex33, n_frames=300, decode=False)
+    lens = np.asarray(syn.lengths)
+    assert lens.sum() == 300 and np.all(lens[:-1] == 33), lens
+    path = np.asarray(syn.path)
+    np.testing.assert_array_equal(
+        np.asarray(mj.synthesize(jax.random.key(1), tex33, path, decode=False).lengths), 33
+    )
+    # the paper's choice: the lengths of the key poses' training segments
+    seg = mj.synthesize(
+        jax.random.key(0), tex33, n_frames=300, decode=False, lengths_from="segments"
+    )
+    train_lengths = set(np.asarray(tex.segment_lengths).tolist())
+    assert set(np.asarray(seg.lengths)[:-1].tolist()) <= train_lengths
+    with pytest.raises(ValueError, match="lengths_from"):
+        mj.synthesize(jax.random.key(0), tex33, n_frames=300, lengths_from="fitted")
+
+
 def test_learned_models_round_trip_and_old_files_load_as_paper(tmp_path):
     ys = _clips(1)
     tex = mj.learn(ys, mj.LearnConfig(tmin=20, tmax=60, max_iter=2))

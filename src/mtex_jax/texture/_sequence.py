@@ -115,6 +115,15 @@ def _check_options(weighting: Any, residual: Any) -> None:
         raise ValueError(f"residual must be 'blend' or 'subspace', got {residual!r}")
 
 
+def _draw_durations(key: Array, texture: MotionTexture, path: np.ndarray) -> np.ndarray:
+    """One length per texton of ``path`` from its fitted duration distribution on
+    ``[tmin, tmax]`` (``texture.log_durations``)."""
+    assert texture.log_durations is not None
+    log_d = jnp.asarray(texture.log_durations)[jnp.asarray(path)]
+    idx = jax.random.categorical(key, log_d, axis=-1)
+    return np.asarray(idx).astype(np.int64) + int(texture.config.tmin)
+
+
 def _check_n_frames(n_frames: Any) -> int:
     if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
         raise TypeError(f"n_frames must be an int, got {n_frames!r}")
@@ -307,6 +316,7 @@ def synthesize(
     weighting: Weighting = "whitened",
     residual: Residual = "blend",
     decode: bool = True,
+    lengths_from: str = "durations",
 ) -> Synthesis:
     """Synthesise a new motion from a motion texture (MT §5; SPEC §5).
 
@@ -342,6 +352,11 @@ def synthesize(
             poses and boundaries are continuous; ``"subspace"``: plain ``μ + C x`` (the
             paper; boundaries then jump by the difference of two reprojections).
         decode: decode to a :class:`Motion` (if the texture has a feature map).
+        lengths_from: where drawn texton lengths come from (when ``lengths`` is not given):
+            ``"durations"`` (default): each texton's fitted duration distribution
+            (``MotionTexture.log_durations``, ``LearnConfig.durations="lognormal"``), drawn
+            with ``key``; ``"segments"``: the training segment of the texton's key poses
+            (the paper). A texture with flat durations, or ``key=None``, uses the segments.
 
     Returns:
         a :class:`Synthesis` (observations, path, lengths, starts, decoded motion).
@@ -352,6 +367,8 @@ def synthesize(
     check_key(key, "synthesize", allow_none=True)
     _check_texture(texture)
     _check_options(weighting, residual)
+    if lengths_from not in ("durations", "segments"):
+        raise ValueError(f"lengths_from must be 'durations' or 'segments', got {lengths_from!r}")
     n_t = texture.n_textons
     D = texture.obs_dim
     start_np = None if start is None else _check_pair("start", start, D)
@@ -366,11 +383,16 @@ def synthesize(
             raise ValueError("give a path or n_frames")
         if k_path is None:
             raise ValueError("a random path needs a key (key=None only with a given path)")
+        fitted = lengths_from == "durations" and texture.log_durations is not None
         shortest = int(max(2, np.asarray(texture.segment_lengths).min()))
+        if fitted:  # the shortest length the duration distributions allow
+            shortest = min(shortest, int(texture.config.tmin))
         n_max = n_frames // shortest + 2
         walk = random_path(k_path, texture, n_max, start=start_texton)
         walk_seg = _instances(texture, k_inst, walk)
         drawn = np.asarray(texture.segment_lengths)[walk_seg]
+        if fitted:
+            drawn = _draw_durations(jax.random.fold_in(k_path, 1), texture, walk)
         n = int(np.searchsorted(np.cumsum(drawn), n_frames) + 1)
         lens = drawn[:n].copy()
         lens[-1] = n_frames - int(lens[:-1].sum())
@@ -400,6 +422,12 @@ def synthesize(
                 raise ValueError(f"lengths sum to {int(lens.sum())}, not n_frames = {n_frames}")
         else:
             lens = np.asarray(texture.segment_lengths)[seg_idx].astype(np.int64)
+            if (
+                lengths_from == "durations"
+                and texture.log_durations is not None
+                and k_inst is not None
+            ):
+                lens = _draw_durations(jax.random.fold_in(k_inst, 1), texture, path_np)
             if n_frames is not None:
                 lens = _scale_lengths(lens, n_frames, np.full(lens.size, 2))
     if (lens < 2).any():
