@@ -180,12 +180,18 @@ def learn(
     return model
 
 
-def _model_bic(model: MotionTexture, n_frames: int) -> float:
+def _bic_parts(model: MotionTexture, n_frames: int) -> tuple[float, int, float]:
+    """``(log P(Y, H), p, BIC)`` of a learned model: its best EM objective, its number of free
+    parameters and ``−2 log P(Y, H) + p log n``."""
     cfg = model.config
     assert cfg.state_dim is not None
     ll = float(np.asarray(model.history)[:, 1].max())
     p = n_params(model.n_textons, model.obs_dim, cfg.state_dim, cfg.observation, cfg.durations)
-    return -2 * ll + p * math.log(n_frames)
+    return ll, p, -2 * ll + p * math.log(n_frames)
+
+
+def _model_bic(model: MotionTexture, n_frames: int) -> float:
+    return _bic_parts(model, n_frames)[2]
 
 
 def _backward_bic(
@@ -252,22 +258,19 @@ def _bic(
     callback: Callable[[dict[str, Any]], None] | None,
 ) -> tuple[float, list[dict[str, float]], list[MotionTexture]]:
     n = sum(y.shape[0] for y in run.ys)
-    D = run.ys[0].shape[1]
     table: list[dict[str, float]] = []
     models: list[MotionTexture] = []
     for th in thresholds:
         t0 = time.perf_counter()
         segs, _ = greedy_init(run.ys, config, float(th))
         model = _em(run, fm, config, float(th), segs, False, callback, t0)
-        ll = float(np.asarray(model.history)[:, 1].max())
-        assert config.state_dim is not None
-        p = n_params(model.n_textons, D, config.state_dim, config.observation, config.durations)
+        ll, p, bic = _bic_parts(model, n)
         row = {
             "threshold": float(th),
             "n_textons": model.n_textons,
             "loglik": ll,
             "params": p,
-            "bic": -2 * ll + p * math.log(n),
+            "bic": bic,
         }
         if verbose:
             print(
