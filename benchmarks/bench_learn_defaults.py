@@ -6,8 +6,9 @@ Rows, in one run on the same machine:
 1. Learning the 14 clips at 60 Hz (``LearnConfig(tmin=60, tmax=180, fps=60)``, defaults
    otherwise: BIC state dimension, residual/full observation model, log-normal durations,
    stable textons, BIC texton selection), wall time including compilation, with the texture's
-   size; beside the paper's model as the README used it before (``state_dim=12,
-   min_segments=3, observation="paper", durations="flat", selection="none", rho_max=None``).
+   size; beside the paper's model as the README used it before
+   (``LearnConfig.paper(min_segments=3)``). With the defaults also at 120 Hz (54,990
+   frames, the same lengths in frames), for the texture's size there.
    ``--repeats`` runs each in a fresh process (no compilation cache shared) and reports the
    median.
 2. The E-step (segment scores + duration-aware Viterbi) of the default texture on the 14 clips
@@ -41,8 +42,9 @@ from pathlib import Path
 cmu = Path(sys.argv[1])
 which = sys.argv[2]
 clips = [mj.read_bvh(f)[4:] for f in sorted(cmu.glob("*.bvh"))]
-if which == "default":
-    cfg = mj.LearnConfig(tmin=60, tmax=180, fps=60.0)
+fps = 120.0 if which == "default120" else 60.0
+if which in ("default", "default120"):
+    cfg = mj.LearnConfig(tmin=60, tmax=180, fps=fps)
 else:
     cfg = mj.LearnConfig.paper(tmin=60, tmax=180, fps=60.0, min_segments=3)
 t0 = time.perf_counter()
@@ -54,8 +56,8 @@ cnt = np.bincount(lab, minlength=tex.n_textons)
 out = dict(wall_s=wall, textons=tex.n_textons, segments=int(lab.size),
            segments_per_texton=float(cnt.mean()), single_segment_share=float(np.mean(cnt == 1)),
            state_dim=tex.config.state_dim, observation=tex.config.observation,
-           frames=int(sum(m.resample(60.0).n_frames for m in clips)))
-if which == "default":
+           frames=int(sum(m.resample(fps).n_frames for m in clips)), fps=fps)
+if which == "default":  # the E-step at the paper's scale
     from mtex_jax.texture import segment_scores, viterbi_segments
     fm = tex.feature_map
     y120 = np.concatenate([np.asarray(fm.encode(m.resample(60.0))) for m in clips] * 3)
@@ -91,38 +93,60 @@ def run(which: str) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument(
+        "--rows",
+        default="default,paper,default120",
+        help="rows to (re-)run; the others are kept from the previous results file",
+    )
     args = ap.parse_args()
-    res: dict = {"cpus": os.cpu_count(), "load_before": os.getloadavg()}
-    for which in ("default", "paper"):
-        runs = [run(which) for _ in range(args.repeats)]
+    js = OUT.with_suffix(".json")
+    res: dict = json.loads(js.read_text()) if js.exists() else {}
+    for which in args.rows.split(","):
+        load = os.getloadavg()[0]
+        reps = 1 if which == "default120" else args.repeats
+        runs = [run(which) for _ in range(reps)]
         walls = sorted(r["wall_s"] for r in runs)
-        res[which] = runs[0] | {"wall_s_median": walls[len(walls) // 2], "walls": walls}
+        res[which] = runs[0] | {
+            "wall_s_median": walls[len(walls) // 2],
+            "walls": walls,
+            "load": [load, os.getloadavg()[0]],
+            "cpus": os.cpu_count(),
+        }
         print(which, res[which], flush=True)
-    res["load_after"] = os.getloadavg()
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.with_suffix(".json").write_text(json.dumps(res, indent=1))
-    d, p = res["default"], res["paper"]
+    js.write_text(json.dumps(res, indent=1))
+    if not all(w in res for w in ("default", "paper", "default120")):
+        return
+    d, p, d120 = res["default"], res["paper"], res["default120"]
     e = d["e_step"]
     lines = [
         "# Learning cost with the default settings (14 CMU salsa clips, 60 Hz)",
         "",
-        "`benchmarks/bench_learn_defaults.py`, one run; each learn in a fresh process, wall time",
-        f"including compilation (median of {args.repeats}). Machine: {res['cpus']} CPUs, load "
-        f"{res['load_before'][0]:.1f} before, {res['load_after'][0]:.1f} after.",
+        "`benchmarks/bench_learn_defaults.py`; each learn in a fresh process, wall time",
+        f"including compilation (median of the runs listed). Machine: {d['cpus']} CPUs; the "
+        "load average (1 min) before and after each row is listed.",
         "",
-        "| settings | frames | wall (s) | textons | k | observation | segments / texton "
-        "| single-segment share |",
-        "| --- | ---: | ---: | ---: | ---: | --- | ---: | ---: |",
+        "| settings | Hz | frames | wall (s) | runs | load | textons | k | observation "
+        "| segments / texton | single-segment share |",
+        "| --- | ---: | ---: | ---: | --- | --- | ---: | ---: | --- | ---: | ---: |",
     ]
-    for name, r in (("defaults", d), ("paper (previous README)", p)):
+    for name, r in (
+        ("defaults", d),
+        ("paper (previous README)", p),
+        ("defaults", d120),
+    ):
+        runs = ", ".join(f"{w:.1f}" for w in r["walls"])
         lines.append(
-            f"| {name} | {r['frames']:,} | {r['wall_s_median']:.1f} | {r['textons']} "
+            f"| {name} | {r.get('fps', 60.0):g} | {r['frames']:,} | {r['wall_s_median']:.1f} "
+            f"| {runs} | {r['load'][0]:.1f} → {r['load'][1]:.1f} | {r['textons']} "
             f"| {r['state_dim']} | {r['observation']} | {r['segments_per_texton']:.1f} "
             f"| {100 * r['single_segment_share']:.0f} % |"
         )
     lines += [
         "",
-        f"Ratio defaults / paper: {d['wall_s_median'] / p['wall_s_median']:.2f}.",
+        f"Ratio defaults / paper at 60 Hz: {d['wall_s_median'] / p['wall_s_median']:.2f}; "
+        f"defaults / the issue's 32.6 s (the paper's settings, idle, before issue 16): "
+        f"{d['wall_s_median'] / 32.6:.2f}.",
         "",
         f"E-step of the default texture at the paper's scale ({e['frames']:,} frames: the 14 "
         f"clips three times, {d['textons']} textons, k = {d['state_dim']}, duration-aware "

@@ -206,6 +206,12 @@ def main() -> None:
     tex_frames = np.concatenate([frame_values(tex, y, tex.segment(y)) for y in held_y])
     dens["motion texture (best path)"]["median_frame"] = float(np.median(tex_frames))
     dens["motion texture (best path)"]["worst_frame"] = float(np.min(tex_frames))
+    assert paper.feature_map is not None
+    paper_y = [np.asarray(paper.feature_map.encode(m)) for m in held]
+    paper_frames = np.concatenate([frame_values(paper, y, paper.segment(y)) for y in paper_y])
+    paper_best = f"paper model, {paper.n_textons} textons (k = 12) (best path)"
+    dens[paper_best]["median_frame"] = float(np.median(paper_frames))
+    dens[paper_best]["worst_frame"] = float(np.min(paper_frames))
     for name, fit in (
         ("AR(2)", metrics.fit_ar2),
         ("constant velocity", metrics.constant_velocity),
