@@ -193,3 +193,39 @@ def test_gauss_newton_clean_stops_the_planted_feet(tex, syn, contacts):
     assert s1[lab].max() < 0.25 * s0[lab].max(), (s0[lab].max(), s1[lab].max())
     assert res.penetration_after.max_depth <= 0.01
     assert "converged" in res.edit.report()
+
+
+def test_apply_shift_moves_the_decoded_root_by_the_offset(tex, syn):
+    from mtex_jax.edit._gn import apply_shift, root_channels
+
+    fm = tex.feature_map
+    assert root_channels(fm) is not None
+    _, h0, h1 = mj.motion.ground_axes(fm.skeleton.up_axis)
+    sp, sh = (jnp.asarray(a) for a in fm.start_of(syn.motion))
+    Y = jnp.asarray(syn.Y)
+    t = np.arange(T) / FPS
+    dx = jnp.asarray(np.stack([0.1 * np.sin(t), 0.05 * t], axis=1))
+    Y2, sp2 = apply_shift(fm, Y, sp, sh, dx)
+    a = np.asarray(fm.decode(Y, sp, sh).root_positions)
+    b = np.asarray(fm.decode(Y2, sp2, sh).root_positions)
+    want = a.copy()
+    want[:, h0] += np.asarray(dx[:, 0])
+    want[:, h1] += np.asarray(dx[:, 1])
+    np.testing.assert_allclose(b, want, atol=1e-10)
+    # only the two displacement channels changed
+    changed = np.abs(np.asarray(Y2) - np.asarray(Y)).max(axis=0) > 0
+    assert changed.sum() == 2
+
+
+def test_clean_result_decodes_with_its_start_position(tex, syn, contacts):
+    res = E.clean(tex, syn, contacts, loglik=False)
+    fm = tex.feature_map
+    sh = fm.start_of(syn.motion)[1]
+    again = fm.decode(res.Y, res.edit.start_position, sh)
+    np.testing.assert_allclose(
+        np.asarray(again.root_positions), np.asarray(res.motion.root_positions), atol=1e-12
+    )
+    held = E.clean(tex, syn, contacts, loglik=False, move_root=False)
+    np.testing.assert_allclose(
+        np.asarray(held.edit.start_position), fm.start_of(syn.motion)[0], atol=1e-12
+    )
