@@ -13,39 +13,33 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
+import edit_setup
 import mtex_jax as mj
 from mtex_jax import edit as E
 from mtex_jax.edit._banded import frame_jacobians, kept_positions, root_free_channels
 from mtex_jax.edit._fk import fk_positions
 from mtex_jax.edit._solve import sub_skeleton
 from mtex_jax.metrics import fit_contacts
-from paper_settings import PAPER
 
-FPS = 30.0
-T = 90
+FPS, T = edit_setup.FPS, edit_setup.T
 
 
 @pytest.fixture(scope="module")
 def tex():
-    clips = [mj.load_example(n).resample(FPS) for n in mj.io.example_names()]
-    cfg = mj.LearnConfig(tmin=18, tmax=54, state_dim=6, fps=FPS, threshold=0.3, max_iter=5, **PAPER)
-    return mj.learn(clips, cfg)
+    return edit_setup.texture()
 
 
 @pytest.fixture(scope="module")
 def contacts():
-    clips = [mj.load_example(n).resample(FPS) for n in mj.io.example_names()]
-    return fit_contacts(clips, fps=FPS)
+    return edit_setup.contacts()
 
 
 @pytest.fixture(scope="module")
 def syn(tex):
-    return mj.synthesize(jax.random.key(1), tex, n_frames=T)
+    return edit_setup.synthesis(tex)
 
 
-def _hand(tex):
-    names = tex.feature_map.skeleton.names
-    return next(n for n in names if n.lower().endswith(("hand", "wrist", "right_elbow")))
+_hand = edit_setup.hand
 
 
 def _positions(tex, syn, Y):
