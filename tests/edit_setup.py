@@ -3,6 +3,8 @@ embedded DeepMimic clips at 30 Hz with the paper's settings, so the compiled sol
 
 from __future__ import annotations
 
+import functools
+
 import jax
 
 import mtex_jax as mj
@@ -17,11 +19,13 @@ def _clips() -> list[mj.Motion]:
     return [mj.load_example(n).resample(FPS) for n in mj.io.example_names()]
 
 
+@functools.cache  # learned once per test session, shared by the edit test modules
 def texture() -> mj.MotionTexture:
     cfg = mj.LearnConfig(tmin=18, tmax=54, state_dim=6, fps=FPS, threshold=0.3, max_iter=5, **PAPER)
     return mj.learn(_clips(), cfg)
 
 
+@functools.cache
 def contacts():
     return fit_contacts(_clips(), fps=FPS)
 

@@ -68,6 +68,7 @@ def test_render_command_writes_gif_and_png(tmp_path, capsys):
         assert im.size[0] > im.size[1]
 
 
+@pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_learn_synth_and_choreograph_on_the_embedded_clips(tmp_path):
     # the settings of the former DeepMimic demo (mtex demo now runs on the salsa clips,
     # tests/test_demo.py)

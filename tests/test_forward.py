@@ -186,6 +186,7 @@ def test_bad_input():
         log_likelihood(tex, log_M, log_pi, jnp.asarray(Y[0]), 3, 5)
 
 
+@pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_marginal_at_least_best_path_on_held_out_salsa(cmu_motions):
     """On real held-out clips the marginal log-likelihood is >= the best path's score, and the
     per-frame figures are the totals over the number of frames."""

@@ -204,6 +204,7 @@ def test_learn_input_errors():
         learn([ok, mj.load_example("walk")], cfg)
 
 
+@pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_sharded_learning_equals_single_device(tmp_path):
     """Two CPU devices (XLA flag, in a subprocess): the same model as with one device."""
     script = textwrap.dedent(
