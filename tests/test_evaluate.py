@@ -22,6 +22,7 @@ def cmu_model(tmp_path_factory, cmu_files):
     return path
 
 
+@pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_evaluate_on_cmu_clips(cmu_model, cmu_files, tmp_path, capsys):
     out = tmp_path / "report.json"
     code = main(

@@ -22,6 +22,7 @@ DATA = Path(mj.__file__).resolve().parent / "data" / "salsa"
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_every_clip_equals_the_bvh_resampled_to_60_hz(cmu_files):
     names = mj.io.salsa_names()
     assert names == [f.stem for f in cmu_files]

@@ -444,6 +444,7 @@ def test_constrained_to_its_own_noise_driven_end_is_the_noise_driven_motion(weig
     np.testing.assert_allclose(bridged, free, rtol=0, atol=1e-9 * np.abs(free).max())
 
 
+@pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 @pytest.mark.parametrize("rho", [0.95, 1.3])
 def test_bridge_at_paper_scale_equals_banded_solve_and_dense(rho):
     """k = 15, the bridge against the banded solve of the same equations (length 172) and
