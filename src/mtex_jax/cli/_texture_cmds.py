@@ -16,10 +16,28 @@ __all__ = ["register"]
 
 
 def _cmd_learn(args: argparse.Namespace) -> int:
-    from ..texture import LearnConfig, learn, texture_summary
+    from ..texture import LearnConfig, learn, learn_distributed, texture_summary
+    from . import _distributed
 
     t0 = time.perf_counter()
-    motions = [read_source(c) for c in args.clips]
+    pid, n_proc = 0, 1
+    if args.split_clips and not args.distributed:
+        raise ValueError("--split-clips needs --distributed")
+    clips = list(args.clips)
+    if args.distributed:
+        pid, n_proc = _distributed.start(args)
+        if args.split_clips:
+            clips = _distributed.share(clips, pid, n_proc)
+        error = None
+        try:
+            if not clips:
+                raise ValueError(f"process {pid} has no clips ({len(args.clips)} for {n_proc})")
+            motions = [read_source(c) for c in clips]
+        except (ValueError, TypeError, OSError) as e:
+            error = e
+        _distributed.agree(error)  # all processes stop together, none waits for a failed one
+    else:
+        motions = [read_source(c) for c in clips]
     fps = args.fps if args.fps is not None else motions[0].fps
     if args.fps is None and any(m.fps != fps for m in motions):
         raise ValueError("the clips have different frame rates; choose one with --fps")
@@ -43,14 +61,21 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         durations=args.durations,
         selection=args.selection,
     )
+    where = f"process {pid} of {n_proc}: " if args.distributed else ""
     print(
-        f"learning from {len(motions)} clip(s), {sum(m.duration for m in motions):.1f} s of "
-        f"motion at {fps:g} Hz; tmin {cfg.tmin} frames, tmax {cfg.tmax} frames, "
+        f"{where}learning from {len(motions)} clip(s), {sum(m.duration for m in motions):.1f} s "
+        f"of motion at {fps:g} Hz; tmin {cfg.tmin} frames, tmax {cfg.tmax} frames, "
         f"state dim {cfg.state_dim if cfg.state_dim is not None else 'by BIC'}, "
         f"observation model {cfg.observation}",
         flush=True,
     )
-    tex = learn(motions, cfg, verbose=not args.quiet)
+    if args.distributed:
+        tex = learn_distributed(motions, cfg, verbose=not args.quiet)
+        if pid != 0:  # every process has the model; process 0 writes it
+            print(f"{where}done in {time.perf_counter() - t0:.1f} s")
+            return 0
+    else:
+        tex = learn(motions, cfg, verbose=not args.quiet)
     tex.save(args.output)
     print(texture_summary(tex))
     print(f"wrote {args.output} in {time.perf_counter() - t0:.1f} s")
@@ -232,11 +257,15 @@ def _cmd_choreograph(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the Motion Texture commands to the ``mtex`` sub-command parsers."""
+    from ._distributed import RECIPE, add_arguments
+
     s = sub.add_parser(
         "learn",
         help="learn a motion texture from clips",
         description="Learn a motion texture (textons + transition matrix) from motion clips "
         "by greedy initialisation and EM (MT §4).",
+        epilog=RECIPE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     s.add_argument("clips", nargs="+", help=SOURCE_HELP + "; one or more")
     s.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
@@ -290,6 +319,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="prune textons with fewer training segments (default 3; 1: no pruning, the paper)",
     )
     s.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
+    add_arguments(s)
     s.set_defaults(func=_cmd_learn)
 
     s = sub.add_parser(

@@ -1,5 +1,6 @@
 """Motion Texture (Li, Wang & Shum 2002): textons (second-order LDS), their fitting and
-likelihoods, learning by EM, segmentation, texton paths and synthesis.
+likelihoods, learning by EM (also data-parallel over the processes of a ``jax.distributed`` job:
+:func:`learn_distributed`), segmentation, texton paths and synthesis.
 """
 
 from ._banded import (
@@ -13,6 +14,9 @@ from ._choreograph import (
 )
 from ._config import (
     LearnConfig as LearnConfig,
+)
+from ._distributed import (
+    learn_distributed as learn_distributed,
 )
 from ._durations import (
     fit_durations as fit_durations,
@@ -143,6 +147,7 @@ __all__ = [
     "greedy_init",
     "init_terms",
     "learn",
+    "learn_distributed",
     "load_texture",
     "log_likelihood",
     "match_texton",

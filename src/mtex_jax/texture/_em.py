@@ -29,10 +29,14 @@ from ._texton import Texton
 # ---------------------------------------------------------------------------------------------
 # M-step
 # ---------------------------------------------------------------------------------------------
-def _pad(ys: Sequence[np.ndarray], n_seq: int) -> tuple[np.ndarray, np.ndarray]:
-    T = max(y.shape[0] for y in ys)
+def _pad(
+    ys: Sequence[np.ndarray], n_seq: int, T: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The sequences zero-padded to ``T`` frames (default: the longest), ``(n_seq, T, D)``,
+    and their lengths."""
+    width = max(y.shape[0] for y in ys) if T is None else T
     D = ys[0].shape[1]
-    out = np.zeros((n_seq, T, D), dtype=ys[0].dtype)
+    out = np.zeros((n_seq, width, D), dtype=ys[0].dtype)
     nf = np.zeros(n_seq, dtype=np.int64)
     for i, y in enumerate(ys):
         out[i, : y.shape[0]] = y
@@ -186,14 +190,23 @@ _PAD_E_STEP = 16
 class _Runner:
     """Padded, optionally sharded data and the jitted M- and E-steps."""
 
-    def __init__(self, ys: list[np.ndarray], config: LearnConfig) -> None:
+    def __init__(
+        self,
+        ys: list[np.ndarray],
+        config: LearnConfig,
+        devices: Sequence[Any] | None = None,
+        T: int | None = None,
+    ) -> None:
+        """``ys`` padded to ``T`` frames (default: the longest) and put on ``devices``
+        (default: all of JAX's, sharded when ``config.shard``)."""
         self.ys = ys
         self.config = config
         self.n_real = len(ys)
-        devices = jax.devices()
+        self.n_frames = sum(y.shape[0] for y in ys)  # frames of all clips (every process's)
+        devices = jax.devices() if devices is None else devices
         n_dev = len(devices) if config.shard else 1
         n_seq = -(-self.n_real // n_dev) * n_dev
-        ypad, nf = _pad(ys, n_seq)
+        ypad, nf = _pad(ys, n_seq, T)
         self.T = ypad.shape[1]
         self.n_seq = n_seq
         self.sharding = None
@@ -262,6 +275,14 @@ class _Runner:
     def e_step(
         self, tex: Texton, M: np.ndarray, pi: np.ndarray, log_d: np.ndarray | None = None
     ) -> tuple[Segs, float]:
+        """The optimal segmentation of every clip and its total score."""
+        rows, scores = self._segment_clips(tex, M, pi, log_d)
+        return rows, float(scores.sum())
+
+    def _segment_clips(
+        self, tex: Texton, M: np.ndarray, pi: np.ndarray, log_d: np.ndarray | None
+    ) -> tuple[Segs, np.ndarray]:
+        """Segment rows of the clips ``self.ys`` (numbered from 0) and each clip's score."""
         # only the real textons: the capacity padding of the M-step would double the work
         # (N_t changes rarely, so the extra compilations are few); up to _PAD_E_STEP textons
         # the stack is padded to a power of two (model selection visits every small N_t)
@@ -287,10 +308,15 @@ class _Runner:
         nseg = np.asarray(seg.n_segments)
         scores = np.asarray(seg.score)
         rows = []
-        for s in range(self.n_real):
+        n_clips = len(self.ys)
+        for s in range(n_clips):
             for k in range(int(nseg[s])):
                 rows.append((s, int(starts[s, k]), int(lengths[s, k]), int(labels[s, k])))
-        return np.asarray(rows, dtype=np.int64).reshape(-1, 4), float(scores[: self.n_real].sum())
+        return np.asarray(rows, dtype=np.int64).reshape(-1, 4), scores[:n_clips]
+
+    def key_poses(self, segs: Segs) -> np.ndarray:
+        """The first two frames of every segment, ``(n_segments, 2, D)``."""
+        return np.stack([np.stack([self.ys[s][b], self.ys[s][b + 1]]) for s, b, _, _ in segs])
 
     def objective(
         self,
@@ -302,6 +328,17 @@ class _Runner:
     ) -> float:
         """log P(Y, segmentation | model): segment scores plus initial/transition (and
         duration) terms."""
+        total = self._segments_ll(tex, M, segs)
+        log_M, log_pi = np.log(M), np.log(pi)
+        if log_d is not None:
+            total += float(log_d[segs[:, 3], segs[:, 2] - self.config.tmin].sum())
+        for s in range(self.n_real):
+            lab = segs[segs[:, 0] == s, 3]
+            total += float(log_pi[lab[0]] + log_M[lab[:-1], lab[1:]].sum())
+        return total
+
+    def _segments_ll(self, tex: Texton, M: np.ndarray, segs: Segs) -> float:
+        """``Σ`` of the segment scores of the rows ``segs`` (each by its own texton)."""
         n = len(segs)
         cap = self._cap("rows", _capacity(n))
         rows = np.zeros((cap, 4), dtype=np.int64)
@@ -310,17 +347,9 @@ class _Runner:
         w = np.zeros(cap)
         w[:n] = 1.0
         rows[:, 3] = np.minimum(rows[:, 3], M.shape[0] - 1)
-        seg_ll = float(
+        return float(
             _rows_score(tex, self.Y, jnp.asarray(rows), jnp.asarray(w, self.Y.dtype), self.tmax)
         )
-        log_M, log_pi = np.log(M), np.log(pi)
-        total = seg_ll
-        if log_d is not None:
-            total += float(log_d[segs[:, 3], segs[:, 2] - self.config.tmin].sum())
-        for s in range(self.n_real):
-            lab = segs[segs[:, 0] == s, 3]
-            total += float(log_pi[lab[0]] + log_M[lab[:-1], lab[1:]].sum())
-        return total
 
 
 def _em(
@@ -333,8 +362,7 @@ def _em(
     callback: Callable[[dict[str, Any]], None] | None,
     t0: float,
 ) -> MotionTexture:
-    ys = run.ys
-    n_frames = sum(y.shape[0] for y in ys)
+    n_frames = run.n_frames
     segs, _ = _relabel(segs)
     history: list[tuple[float, float]] = []
     best: tuple[float, Texton, np.ndarray, np.ndarray, Segs, np.ndarray | None] | None = None
@@ -395,7 +423,7 @@ def _em(
         tex, M, pi = _keep_textons(tex, M, pi, used)
         log_d = None if log_d is None else log_d[used]
         final_segs, _ = _relabel(final_segs)
-    key = np.stack([np.stack([ys[s][b], ys[s][b + 1]]) for s, b, _, _ in final_segs])
+    key = run.key_poses(final_segs)
     return MotionTexture(
         textons=tex,
         M=jnp.asarray(M),

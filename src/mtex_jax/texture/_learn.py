@@ -206,7 +206,7 @@ def _backward_bic(
     clips again by the others; if ``BIC = −2 log P(Y, H) + p log n`` of that segmentation under
     the remaining textons (a lower bound of the log-likelihood after refitting) is lower, rerun
     EM (at most 5 iterations) from it and continue, else stop."""
-    n = sum(y.shape[0] for y in run.ys)
+    n = run.n_frames
     best, best_bic = model, _model_bic(model, n)
     cap = 1 << max(0, (best.n_textons - 1).bit_length())
     run.min_cap = cap if cap <= 16 else 1
@@ -257,7 +257,7 @@ def _bic(
     verbose: bool,
     callback: Callable[[dict[str, Any]], None] | None,
 ) -> tuple[float, list[dict[str, float]], list[MotionTexture]]:
-    n = sum(y.shape[0] for y in run.ys)
+    n = run.n_frames
     table: list[dict[str, float]] = []
     models: list[MotionTexture] = []
     for th in thresholds:

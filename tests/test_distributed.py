@@ -1,0 +1,138 @@
+"""Data-parallel learning over 2 processes (``jax.distributed``, gloo collectives on loopback)
+equals the single-process learn on the union of the clips."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from mtex_jax.io import load_salsa
+from mtex_jax.texture import LearnConfig, learn, learn_distributed
+
+# four short salsa clips (the shipped 60 Hz data): process 0 holds the first two
+CLIPS = ("60_01", "60_02", "60_03", "60_04")
+FRAMES = 600
+CONFIG = dict(tmin=30, tmax=90, state_dim=6, threshold=2.0, max_iter=4, fps=60.0)
+TIMEOUT = 240.0  # seconds for both workers together; they are killed after it
+
+WORKER = textwrap.dedent(
+    """
+    import sys
+    import jax
+
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.config.update("jax_enable_x64", True)
+    pid, port, out = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+    jax.distributed.initialize(
+        f"127.0.0.1:{port}", num_processes=2, process_id=pid, local_device_ids=[0],
+        initialization_timeout=60,
+    )
+    import numpy as np
+    from mtex_jax.io import load_salsa
+    from mtex_jax.texture import LearnConfig, learn_distributed
+
+    clips = [load_salsa(n)[:FRAMES] for n in CLIPS]
+    mine = clips[:2] if pid == 0 else clips[2:]
+    cfg = LearnConfig(**CONFIG)
+    errors = []
+    # bad input on one process is an error on every process (and no hang)
+    other = LearnConfig(**{**CONFIG, "tmin": 31 + pid})
+    for data, c in (([] if pid else mine, cfg), (mine, other)):
+        try:
+            learn_distributed(data, c)
+        except ValueError as e:
+            errors.append(str(e))
+    mt = learn_distributed(mine, cfg)
+    leaves = {f"leaf{i}": np.asarray(a) for i, a in enumerate(jax.tree.leaves(mt))}
+    np.savez(out, errors=np.asarray(errors), **leaves)
+    print("WORKER_OK", pid, mt.n_textons, flush=True)
+    """
+)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _clips() -> list:
+    return [load_salsa(n)[:FRAMES] for n in CLIPS]
+
+
+def test_two_processes_equal_one(tmp_path):
+    """2 processes × 1 CPU device: the same textons, transition matrix and segmentation as
+    :func:`learn` on all four clips, and the same model on both processes."""
+    script = f"CLIPS = {CLIPS!r}\nFRAMES = {FRAMES}\nCONFIG = {CONFIG!r}\n" + WORKER
+    port = _free_port()
+    env = {**os.environ, "XLA_FLAGS": "", "JAX_PLATFORMS": "cpu"}
+    procs, logs = [], []
+    for pid in range(2):
+        log = open(tmp_path / f"worker{pid}.log", "w")  # closed below
+        logs.append(log)
+        cmd = [sys.executable, "-c", script, str(pid), str(port), str(tmp_path / f"out{pid}.npz")]
+        procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env))
+    try:
+        # the reference while the workers run (three processes on the CI's two cores)
+        ref = learn(_clips(), LearnConfig(**CONFIG))
+        deadline = time.monotonic() + TIMEOUT
+        for p in procs:
+            p.wait(timeout=max(1.0, deadline - time.monotonic()))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        for log in logs:
+            log.close()
+    out = [(tmp_path / f"worker{pid}.log").read_text() for pid in range(2)]
+    for pid, p in enumerate(procs):
+        assert p.returncode == 0 and "WORKER_OK" in out[pid], out[pid][-3000:]
+    got = [np.load(tmp_path / f"out{pid}.npz") for pid in range(2)]
+    for g in got:
+        errors = list(g["errors"])
+        assert len(errors) == 2, errors
+        assert "process 1: has no clips" in errors[0]
+        assert "process 1: its LearnConfig differs" in errors[1]
+    ref_leaves = [np.asarray(a) for a in jax.tree.leaves(ref)]
+    n = len(ref_leaves)
+    for pid in range(2):
+        assert len([k for k in got[pid].files if k.startswith("leaf")]) == n
+    # every process ends with the same model, bit for bit
+    for i in range(n):
+        np.testing.assert_array_equal(got[0][f"leaf{i}"], got[1][f"leaf{i}"])
+    mt = [got[0][f"leaf{i}"] for i in range(n)]
+    # the same model as one process, to rounding
+    for a, b in zip(ref_leaves, mt, strict=True):
+        assert a.shape == b.shape and a.dtype == b.dtype
+        if a.dtype.kind in "iub":
+            np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-9)
+    idx = {id(x): i for i, x in enumerate(jax.tree.leaves(ref))}
+    seg = mt[idx[id(ref.segments)]]
+    np.testing.assert_array_equal(seg, np.asarray(ref.segments))
+    M = mt[idx[id(ref.M)]]
+    np.testing.assert_allclose(M, np.asarray(ref.M), rtol=0, atol=1e-12)
+    mu = mt[idx[id(ref.textons.mu)]]
+    np.testing.assert_allclose(mu, np.asarray(ref.textons.mu), rtol=0, atol=1e-10)
+
+
+def test_single_process_input_errors():
+    """Without jax.distributed it is one process: bad input raises at once."""
+    with pytest.raises(ValueError, match="no clips"):
+        learn_distributed([], LearnConfig(**CONFIG))
+    with pytest.raises(TypeError, match="LearnConfig"):
+        learn_distributed([np.zeros((100, 3))], "not a config")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="dtype object"):
+        learn_distributed([np.zeros((100, 3), dtype=object)], LearnConfig(**CONFIG))
+    with pytest.raises(ValueError, match="shorter than tmin"):
+        learn_distributed([np.zeros((10, 3))], LearnConfig(**CONFIG))
