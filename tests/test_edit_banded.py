@@ -16,7 +16,12 @@ from jax.test_util import check_grads
 import edit_setup
 import mtex_jax as mj
 from mtex_jax import edit as E
-from mtex_jax.edit._banded import frame_jacobians, kept_positions, root_free_channels
+from mtex_jax.edit._banded import (
+    channel_colouring,
+    frame_jacobians,
+    kept_positions,
+    root_free_channels,
+)
 from mtex_jax.edit._fk import fk_positions
 from mtex_jax.edit._solve import sub_skeleton
 from mtex_jax.metrics import fit_contacts
@@ -72,6 +77,15 @@ def test_frame_jacobians_are_the_diagonal_blocks_of_the_dense_jacobian(tex, syn)
     free = jnp.asarray(root_free_channels(fm))
     P, J = frame_jacobians(fn, Y, free)
     np.testing.assert_allclose(np.asarray(P), np.asarray(fn(Y)), atol=1e-12)
+    # channels that move disjoint joints share one Jacobian-vector product: same columns
+    col = channel_colouring(fm, order)
+    assert col.n_colours < fm.dim / 2
+    colour, support = np.asarray(col.colour), np.asarray(col.support)
+    for c in range(col.n_colours):
+        assert np.all(support[colour == c].sum(axis=0) <= 1)  # no joint moved by two of them
+    Pc, Jc = frame_jacobians(fn, Y, free, col)
+    np.testing.assert_allclose(np.asarray(Pc), np.asarray(P), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(Jc), np.asarray(J), atol=1e-12)
     dense = np.asarray(jax.jacfwd(fn)(Y))  # (n, K, 3, n, D)
     f = np.asarray(free).astype(bool)
     for t in range(n):

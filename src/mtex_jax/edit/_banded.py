@@ -38,7 +38,9 @@ from ._whiten import whitening
 
 __all__ = [
     "BandedSolve",
+    "Colouring",
     "PointTargets",
+    "channel_colouring",
     "frame_jacobians",
     "kept_positions",
     "root_free_channels",
@@ -92,16 +94,100 @@ def kept_positions(
     return fk_positions(sub, m.root_positions, m.rotations[:, k], lp)
 
 
-def frame_jacobians(fn, Y: Array, free_ch: Array) -> tuple[Array, Array]:
+class Colouring(eqx.Module):
+    """Channels grouped so that one tangent carries several Jacobian columns (static).
+
+    Two channels may share a tangent when no kept joint's position depends on both (say the
+    left knee and the right elbow): the joint positions a tangent moves then split by joint
+    into the channels' columns.
+
+    Attributes:
+        colour: ``(D,)`` the tangent of each channel.
+        support: ``(D, K)`` 1 where the channel may move the kept joint (its descendants).
+        n_colours: number of tangents.
+    """
+
+    colour: tuple[int, ...] = eqx.field(static=True)
+    support: tuple[tuple[bool, ...], ...] = eqx.field(static=True)
+    n_colours: int = eqx.field(static=True)
+
+
+def channel_colouring(fm: FeatureMap, keep: tuple[int, ...]) -> Colouring:
+    """Greedy colouring of the observation channels for :func:`frame_jacobians`.
+
+    A channel named ``joint.*`` rotates that joint, so it moves the kept joints below it (and,
+    to be safe, the joint itself); any other channel (``root.*``, or a name that is not a
+    joint's) is taken to move every kept joint and gets a tangent of its own. Channels are
+    placed, most far-reaching first, in the first colour none of whose channels moves a joint
+    they move.
+
+    Args:
+        fm: the feature map (its skeleton and channel names).
+        keep: the kept joints (skeleton indices, in the order of the positions' axis 1).
+
+    Returns:
+        :class:`Colouring`.
+    """
+    sk = fm.skeleton
+    parents = list(sk.parents)
+    K = len(keep)
+
+    def below(j: int) -> np.ndarray:
+        out = np.zeros(K, bool)
+        for i, k in enumerate(keep):
+            a = k
+            while a >= 0 and a != j:
+                a = parents[a]
+            out[i] = a == j
+        return out
+
+    names = fm.active_names
+    support = np.ones((len(names), K), bool)
+    for c, n in enumerate(names):
+        joint = n.split(".", 1)[0]
+        if joint != "root" and joint in sk.names and sk.index(joint) != 0:
+            support[c] = below(sk.index(joint))
+    colour = np.zeros(len(names), np.int32)
+    used: list[np.ndarray] = []
+    for c in np.argsort(-support.sum(axis=1), kind="stable"):
+        for i, u in enumerate(used):
+            if not np.any(u & support[c]):
+                colour[c] = i
+                used[i] = u | support[c]
+                break
+        else:
+            colour[c] = len(used)
+            used.append(support[c].copy())
+    return Colouring(
+        colour=tuple(int(c) for c in colour),
+        support=tuple(tuple(bool(b) for b in row) for row in support),
+        n_colours=len(used),
+    )
+
+
+def frame_jacobians(
+    fn, Y: Array, free_ch: Array, colouring: Colouring | None = None
+) -> tuple[Array, Array]:
     """``P = fn(Y)`` ``(T, K, 3)`` and its per-frame Jacobians ``(T, K, 3, D)`` with respect
     to the free channels (held channels' columns are zero).
 
-    Valid when frames do not interact through the free channels (module notes)."""
+    Valid when frames do not interact through the free channels (module notes). With a
+    ``colouring`` one Jacobian-vector product serves every channel of a colour, and each
+    channel's column is its colour's tangent restricted to the joints it moves.
+    """
     D = Y.shape[1]
     P, lin = jax.linearize(fn, Y)
     eye = jnp.eye(D, dtype=Y.dtype) * free_ch[None, :]
-    cols = jax.vmap(lambda e: lin(jnp.broadcast_to(e, Y.shape)))(eye)  # (D, T, K, 3)
-    return P, jnp.moveaxis(cols, 0, -1)
+    if colouring is None:
+        cols = jax.vmap(lambda e: lin(jnp.broadcast_to(e, Y.shape)))(eye)  # (D, T, K, 3)
+        return P, jnp.moveaxis(cols, 0, -1)
+    colour = np.asarray(colouring.colour)
+    groups = jnp.asarray(np.eye(colouring.n_colours)[colour].T, Y.dtype)  # (C, D)
+    tang = groups * free_ch[None, :]
+    cols = jax.vmap(lambda e: lin(jnp.broadcast_to(e, Y.shape)))(tang)  # (C, T, K, 3)
+    sup = jnp.asarray(np.asarray(colouring.support), Y.dtype) * free_ch[:, None]  # (D, K)
+    J = cols[colour] * sup[:, None, :, None]  # (D, T, K, 3)
+    return P, jnp.moveaxis(J, 0, -1)
 
 
 def _masked_bands(bands, anchor: Array, free_ch: Array):
@@ -130,6 +216,7 @@ def solve_banded(
     max_steps: int = 8,
     rtol: float = 1e-6,
     xtol: float = 1e-4,
+    colouring: Colouring | None = None,
 ) -> BandedSolve:
     """Minimise the banded objective (module notes) by Gauss–Newton, with multiplier rounds.
 
@@ -157,6 +244,8 @@ def solve_banded(
         max_steps: Gauss–Newton steps per round.
         rtol: relative change of the cost below which a round stops.
         xtol: largest step (z-scored units) below which a round stops.
+        colouring: channels that share a Jacobian-vector product (:func:`channel_colouring`);
+            ``None``: one product per channel.
 
     Returns:
         :class:`BandedSolve`.
@@ -197,7 +286,7 @@ def solve_banded(
         return 0.5 * (hz + jnp.sum(w2 * r * r) + jnp.sum((lw * low) ** 2))
 
     def gn_step(z: Array, shift: Array) -> tuple[Array, Array]:
-        P, J = frame_jacobians(fn, edited(z), free_ch)
+        P, J = frame_jacobians(fn, edited(z), free_ch, colouring)
         P = P + offset(z)
         if move_root is not None:
             (c0, c1), (h0, h1) = move_root

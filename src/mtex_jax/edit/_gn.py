@@ -24,7 +24,13 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..motion import FeatureMap, ground_axes, quat_conj, quat_rotate, yaw_quat
-from ._banded import PointTargets, kept_positions, root_free_channels, solve_banded
+from ._banded import (
+    PointTargets,
+    channel_colouring,
+    kept_positions,
+    root_free_channels,
+    solve_banded,
+)
 from ._constraints import Constraints, EditWeights
 from ._prior import FrameSegments, WhitenedTextons, prior_hessian, smoothness_hessian
 from ._solve import EditResult, _finish_banded, _run_means, problem
@@ -165,6 +171,7 @@ def solve_edit_gn(
         max_steps=max_steps,
         rtol=rtol,
         xtol=xtol,
+        colouring=channel_colouring(fm, prob.keep),
     )
     z, sp = sol.z, prob.sp
     Y = jnp.where(cons.pose_mask[:, None], cons.poses.astype(dt), Y0 + z * free_ch)
