@@ -1,5 +1,11 @@
 """Data-parallel learning over 2 processes (``jax.distributed``, gloo collectives on loopback)
-equals the single-process learn on the union of the clips."""
+equals the single-process learn on the union of the clips.
+
+The 2-process test starts two workers (one CPU device each, a free loopback port), each with
+two short salsa clips, and learns with the default selection (BIC), pruning and log-normal
+durations while this process learns on all four clips; the workers are killed after
+``TIMEOUT`` seconds, so it cannot hang.
+"""
 
 from __future__ import annotations
 
@@ -136,3 +142,28 @@ def test_single_process_input_errors():
         learn_distributed([np.zeros((100, 3), dtype=object)], LearnConfig(**CONFIG))
     with pytest.raises(ValueError, match="shorter than tmin"):
         learn_distributed([np.zeros((10, 3))], LearnConfig(**CONFIG))
+
+
+def test_cli_distributed_settings_errors(capsys, monkeypatch, tmp_path):
+    """``mtex learn --distributed``: incomplete or bad settings are one-line errors, before
+    JAX's runtime is started."""
+    from mtex_jax.cli import main
+
+    for var in ("MTEX_COORDINATOR", "MTEX_NUM_PROCESSES", "MTEX_PROCESS_ID"):
+        monkeypatch.delenv(var, raising=False)
+    out = str(tmp_path / "m.npz")
+    assert main(["learn", "example:salsa/60_01", "-o", out, "--split-clips"]) == 2
+    assert "--split-clips needs --distributed" in capsys.readouterr().err
+    argv = ["learn", "example:salsa/60_01", "-o", out, "--distributed"]
+    assert main([*argv, "--coordinator", "127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert "missing" in err and "MTEX_NUM_PROCESSES" in err and "MTEX_PROCESS_ID" in err
+    monkeypatch.setenv("MTEX_NUM_PROCESSES", "2")
+    monkeypatch.setenv("MTEX_PROCESS_ID", "2")
+    assert main([*argv, "--coordinator", "127.0.0.1:1"]) == 2
+    assert "process id 2 is not in 0..1" in capsys.readouterr().err
+    monkeypatch.setenv("MTEX_PROCESS_ID", "x")
+    assert main([*argv, "--coordinator", "127.0.0.1:1"]) == 2
+    assert "must be an integer" in capsys.readouterr().err
+    assert main(["learn", "--help"]) == 0
+    assert "--process-id" in capsys.readouterr().out
