@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)  # the benchmark's choice; the library never does this
 
@@ -197,6 +198,10 @@ def main() -> None:
         obs_dim=tex.obs_dim,
         repeats=repeats,
     )
+    log("anatomy of a Gauss-Newton step: one edit against a batch of 16, per motion")
+    res["anatomy"] = anatomy(tex, syns[0], cons, repeats=repeats)
+    res["time"]["edit_steps"] = int(E.edit(tex, syns[0], cons).steps)
+    res["time"]["batch16_steps"] = np.asarray(batch_out[0].steps).tolist()
     res["machine"]["load_end"] = os.getloadavg()
     OUT.mkdir(parents=True, exist_ok=True)
     name = "edit_quick" if args.quick else "edit"
@@ -207,6 +212,66 @@ def main() -> None:
     with atomic_write(OUT / f"{name}.md", "w") as f:
         f.write(report(res))
     log(f"wrote {OUT / name}.md")
+
+
+def anatomy(tex, syn, cons, batch: int = 16, repeats: int = 3) -> dict[str, Any]:
+    """Where a Gauss–Newton step's time goes, for one edit and per motion of a ``vmap`` batch.
+
+    Times (compiled, median of ``repeats``) the step's two big parts on the edit's own
+    shapes: the per-frame Jacobians (coloured tangents, as the solver, and one tangent per
+    channel) and the block Cholesky solve of the normal equations."""
+    from mtex_jax.edit._api import _check, _keep, _observations, segments_of
+    from mtex_jax.edit._banded import (
+        _normal_solve,
+        channel_colouring,
+        frame_jacobians,
+        kept_positions,
+        root_free_channels,
+    )
+    from mtex_jax.edit._prior import WhitenedTextons, prior_hessian, smoothness_hessian
+    from mtex_jax.edit._solve import problem
+
+    fm = tex.feature_map
+    Y, sp, sh = _observations(tex, syn, None, None)
+    cons = _check(cons, Y, fm)
+    w = E.EditWeights()
+    tx = WhitenedTextons.of(tex.textons, Y.dtype)
+    seg = segments_of(tex, syn)
+    prob = problem(fm, tx, seg, Y, sp, sh, cons, w, True, _keep(cons, fm, None))
+    free = jnp.asarray(root_free_channels(fm), Y.dtype)
+    col = channel_colouring(fm, prob.keep)
+    T, D = Y.shape
+    pr, sm = prior_hessian(tx, seg, Y.dtype), smoothness_hessian(T, D, Y.dtype)
+    bands = tuple(w.prior**2 * pr[i] + w.smooth**2 * sm[i] for i in range(3))
+    solve_args = (*bands, w.anchor * jnp.ones(D), cons.pose_mask, jnp.zeros_like(Y), Y)
+
+    def pos(y, a, b):
+        return kept_positions(fm, prob.sub, prob.keep, y, a, b)
+
+    parts: dict[str, Any] = {
+        "jacobians (coloured)": (
+            lambda y, a, b: frame_jacobians(lambda v: pos(v, a, b), y, free, col),
+            (Y, sp, sh),
+        ),
+        "jacobians (one tangent per channel)": (
+            lambda y, a, b: frame_jacobians(lambda v: pos(v, a, b), y, free),
+            (Y, sp, sh),
+        ),
+        "block Cholesky solve": (_normal_solve, solve_args),
+    }
+    stack = lambda args: tuple(jnp.stack([a] * batch) for a in args)
+    out: dict[str, Any] = dict(colours=col.n_colours, channels=D, batch=batch)
+
+    def median_time(f, args) -> float:
+        timed(lambda: f(*args))  # compiles
+        return float(np.median([timed(lambda: f(*args))[0] for _ in range(repeats)]))
+
+    for name, (fn, args) in parts.items():
+        t1 = median_time(jax.jit(fn), args)
+        tb = median_time(jax.jit(jax.vmap(fn)), stack(args))
+        out[name] = dict(single_s=t1, batch_per_motion_s=tb / batch)
+        log(f"  {name}: one {t1:.3f} s, batch of {batch} {tb / batch:.3f} s per motion")
+    return out
 
 
 def report(r: dict[str, Any]) -> str:
@@ -283,9 +348,26 @@ def report(r: dict[str, Any]) -> str:
         f"{t['batch16_s_median']:.2f} s = {t['batch16_per_motion_s']:.2f} s per motion "
         f"(one edit's time / the batch's time per motion = "
         f"{t['edit_s_median'] / max(t['batch16_per_motion_s'], 1e-9):.2f}; "
-        f"{t['batch16_converged']} of 16 converged).",
+        f"{t['batch16_converged']} of 16 converged). Gauss–Newton steps: the edit "
+        f"{t['edit_steps']}; the batch runs until its slowest member stops "
+        f"(steps {min(t['batch16_steps'])}–{max(t['batch16_steps'])}).",
         "",
     ]
+    a = r.get("anatomy")
+    if a:
+        lines += [
+            "### Anatomy of a Gauss–Newton step (compiled, median of repeats)",
+            "",
+            f"The edit's shapes ({t['frames']} frames, D = {a['channels']}; "
+            f"{a['colours']} coloured tangents); a batch of {a['batch']} copies under `vmap`.",
+            "",
+            "| part | one motion (s) | batch, per motion (s) |",
+            "| --- | ---: | ---: |",
+        ]
+        for name, v in a.items():
+            if isinstance(v, dict):
+                lines.append(f"| {name} | {v['single_s']:.3f} | {v['batch_per_motion_s']:.3f} |")
+        lines.append("")
     return "\n".join(lines)
 
 
