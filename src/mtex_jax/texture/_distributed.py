@@ -12,13 +12,14 @@
   objective's transition terms and the convergence test use the global segmentation, so
   every process takes the same decisions.
 
-The collectives are all-gathers of host bytes (bit-exact at any precision setting); sums are
-taken in process order on every process, so all processes end with the same model.
+The M-step's statistics are summed by an all-reduce over one device per process; everything
+else travels as all-gathers of host bytes (bit-exact at any precision setting).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import json
 import time
@@ -83,18 +84,29 @@ def _allgather_arrays(arrays: dict[str, np.ndarray]) -> list[dict[str, np.ndarra
     return [_unpack(b) for b in _allgather_bytes(_pack(arrays))]
 
 
+@functools.cache
+def _process_sum(n_proc: int) -> tuple[jax.sharding.NamedSharding, Callable[..., Any]]:
+    """A global ``(processes, …)`` layout (one device per process) and a jitted sum over its
+    first axis whose result every device holds: XLA's all-reduce (gloo's on CPU)."""
+    devices = [jax.local_devices(process_index=p)[0] for p in range(n_proc)]
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("p",))
+    spec = jax.sharding.PartitionSpec
+    rows = jax.sharding.NamedSharding(mesh, spec("p"))
+    replicated = jax.sharding.NamedSharding(mesh, spec())
+    return rows, jax.jit(lambda xs: [jnp.sum(x, axis=0) for x in xs], out_shardings=replicated)
+
+
 def _allreduce(tree: Any) -> Any:
-    """The sum over processes of a pytree of arrays (in process order: the same result, bit
-    for bit, on every process)."""
+    """The sum over processes of a pytree of arrays: an all-reduce, so each process sends and
+    receives about the size of the tree (not processes × size), and every process gets the
+    same result."""
+    n_proc = jax.process_count()
+    if n_proc == 1:
+        return tree
     leaves, treedef = jax.tree.flatten(tree)
-    host = {str(i): np.asarray(a) for i, a in enumerate(leaves)}
-    parts = _allgather_arrays(host)
-    summed = []
-    for i, a in enumerate(leaves):
-        acc = parts[0][str(i)]
-        for p in parts[1:]:
-            acc = acc + p[str(i)]
-        summed.append(jnp.asarray(acc, a.dtype))
+    rows, total = _process_sum(n_proc)
+    glob = [jax.make_array_from_process_local_data(rows, np.asarray(a)[None]) for a in leaves]
+    summed = [jnp.asarray(np.asarray(o.addressable_data(0))) for o in total(glob)]
     return jax.tree.unflatten(treedef, summed)
 
 
