@@ -37,8 +37,14 @@ from ..motion import FeatureMap, Motion, Skeleton
 from ._config import LearnConfig
 from ._em import _capacity, _em, _Runner, _transitions
 from ._fit import _SolveOptions, _texton_from_stats_impl
-from ._init import Segs, greedy_init, threshold_for_textons
-from ._learn import _backward_bic, _bic_parts, _check_data, _resolve_state_dim
+from ._init import Segs, greedy_init
+from ._learn import (
+    _backward_bic,
+    _bic_parts,
+    _check_data,
+    _greedy_segments,
+    _resolve_state_dim,
+)
 from ._model import MotionTexture
 from ._segment import _check_lengths
 from ._stats import (
@@ -353,20 +359,7 @@ def _initial_segments(
             f"segs{i}": greedy_init(ys, config, float(th))[0]
             for i, th in enumerate(config.bic_thresholds)
         }
-    if config.threshold is not None:
-        threshold = float(config.threshold)
-        segs, _ = greedy_init(ys, config, threshold)
-    elif config.n_textons is not None:
-        threshold, segs, _ = threshold_for_textons(ys, config, config.n_textons)
-    else:
-        threshold = 0.3
-        segs, _ = greedy_init(ys, config, threshold)
-    if verbose:
-        print(
-            f"[mtex learn] greedy init: {int(segs[:, 3].max()) + 1} textons, {len(segs)} "
-            f"segments, threshold {threshold:.4g}, {time.perf_counter() - t0:.1f} s",
-            flush=True,
-        )
+    threshold, segs = _greedy_segments(ys, config, verbose, t0)
     return {"segs0": segs, "threshold": np.asarray([threshold], np.float64)}
 
 

@@ -160,6 +160,18 @@ def learn(
         best = int(np.argmin([r["bic"] for r in table]))
         return models[best]
     t0 = time.perf_counter()
+    threshold, segs = _greedy_segments(ys, config, verbose, t0)
+    model = _em(run, fm, config, threshold, segs, verbose, callback, t0)
+    if config.selection == "bic":
+        model = _backward_bic(run, fm, config, model, verbose, callback)
+    return model
+
+
+def _greedy_segments(
+    ys: list[np.ndarray], config: LearnConfig, verbose: bool, t0: float
+) -> tuple[float, np.ndarray]:
+    """The greedy initialisation's threshold and segments (``config.threshold``, or the one
+    that gives ``config.n_textons``, or 0.3)."""
     if config.threshold is not None:
         threshold = float(config.threshold)
         segs, _ = greedy_init(ys, config, threshold)
@@ -174,10 +186,7 @@ def learn(
             f"segments, threshold {threshold:.4g}, {time.perf_counter() - t0:.1f} s",
             flush=True,
         )
-    model = _em(run, fm, config, threshold, segs, verbose, callback, t0)
-    if config.selection == "bic":
-        model = _backward_bic(run, fm, config, model, verbose, callback)
-    return model
+    return threshold, segs
 
 
 def _bic_parts(model: MotionTexture, n_frames: int) -> tuple[float, int, float]:
