@@ -202,7 +202,8 @@ def main() -> None:
         default=[
             "implicit tree sampler (defaults):",
             "implicit exact sampler (defaults):sampler=exact",
-            "tree, no hubness correction, blend 4 (earlier defaults):hubness=0,blend=4",
+            "tree, root offset over the whole blend (earlier defaults):root_blend=-1",
+            "tree, no hubness correction, blend 4 (older defaults):hubness=0,blend=4,root_blend=-1",
             "implicit tree sampler, paper settings:",
             "implicit exact sampler, paper settings:sampler=exact",
             REPLAY,

@@ -50,6 +50,9 @@ def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.nd
         if cfg.blend > 0:
             x = min(age / (cfg.blend + 1), 1.0)
             w = np.full(dim, 1 - (3 * x * x - 2 * x**3))
+            if cfg.root_blend >= 0:  # root velocity channels: their own fade (0: none)
+                xr = min(age / (cfg.root_blend + 1), 1.0)
+                w[vel] = 1 - (3 * xr * xr - 2 * xr**3) if cfg.root_blend > 0 else 0.0
         else:
             w = np.where(vel, 0.0, 1.0)
         prev = y_next[i] + w * off
@@ -65,6 +68,8 @@ def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.nd
         SynthesisConfig(blend=0, continuation=1, max_run=0, candidates=1, leaf="weighted"),
         SynthesisConfig(blend=7, continuation=3, lookahead=3, leaf="uniform", candidates=4),
         SynthesisConfig(leaf_cap=2, candidates=3),
+        SynthesisConfig(root_blend=-1),
+        SynthesisConfig(blend=4, root_blend=0, continuation=3),
         SynthesisConfig.paper(),
     ],
 )
@@ -103,6 +108,25 @@ def test_blending_rejoins_the_example_after_blend_frames(model, clips):
     succ_y = np.asarray(model.successors)[:, :dim]
     for t in range(0, N - b - 1, 8):  # searches at 0, 8, 16, …; 8 frames played from each
         np.testing.assert_allclose(y[t + b : t + 8], succ_y[idx[t + b : t + 8]], atol=1e-9)
+
+
+def test_root_blend_fades_the_root_velocity_on_its_own(model, clips):
+    """root_blend B_r: the root-velocity channels rejoin the example's values B_r + 1 frames
+    after a transition while the pose channels still carry their offset (B_r = 0 and −1:
+    ``test_poses_follow_the_numpy_rederivation``)."""
+    dim = model.feature_map.dim
+    vel = np.zeros(dim, bool)
+    vel[list(mj.implicit.velocity_channels(model.feature_map))] = True
+    succ_y = np.asarray(model.successors)[:, :dim]
+    key = jax.random.PRNGKey(4)
+    rb = 2
+    cfg = SynthesisConfig(blend=6, root_blend=rb, continuation=8, lookahead=8, max_run=0)
+    y, idx = model.synthesize_poses(key, clips[0], N, 1.0, config=cfg)
+    y, idx = np.asarray(y)[WINDOW:], np.asarray(idx)
+    for t in range(0, N - 8, 8):  # a search every 8 frames
+        got, ex = y[t + rb : t + 8], succ_y[idx[t + rb : t + 8]]
+        np.testing.assert_allclose(got[:, vel], ex[:, vel], atol=1e-9)
+    assert np.abs(y[:, ~vel] - succ_y[idx][:, ~vel]).max() > 1e-3  # pose offsets remain
 
 
 def test_continuation_lookahead_and_run_cap(model, clips):
@@ -303,6 +327,8 @@ def test_bad_options_raise_clear_errors(model, clips):
         ({"hubness": -0.1}, "hubness"),
         ({"hubness": float("inf")}, "hubness"),
         ({"hubness": True}, "hubness"),
+        ({"root_blend": -2}, "root_blend"),
+        ({"root_blend": 1.5}, "root_blend"),
         ({"leaf": "nearest"}, "leaf"),
         ({"velocity": 1}, "velocity"),
         ({"velocity": False, "blend": 3}, "blend"),
@@ -352,6 +378,8 @@ def test_cli_synthesis_options(tmp_path, capsys):
         "exact",
         "--hubness",
         "0.3",
+        "--root-blend",
+        "2",
     ]
     assert main(base + opts) == 0
     assert "wrote" in capsys.readouterr().out
@@ -364,6 +392,7 @@ def test_cli_synthesis_options(tmp_path, capsys):
         (["--max-run", "-3"], "max-run"),
         (["--leaf-cap", "-1"], "leaf-cap"),
         (["--hubness", "-1"], "hubness"),
+        (["--root-blend", "-2"], "root-blend"),
     ):
         assert main(base + bad) == 2
         err = capsys.readouterr().err

@@ -115,6 +115,8 @@ def _synthesis_config(args: argparse.Namespace):
     base = SynthesisConfig.paper() if args.paper else SynthesisConfig()
     if args.hubness is not None and not (0 <= args.hubness < float("inf")):
         raise ValueError(f"--hubness must be a finite number ≥ 0, got {args.hubness}")
+    if args.root_blend is not None and args.root_blend < -1:
+        raise ValueError(f"--root-blend must be ≥ -1, got {args.root_blend}")
     fields = (
         "blend",
         "leaf",
@@ -124,6 +126,7 @@ def _synthesis_config(args: argparse.Namespace):
         "candidates",
         "leaf_cap",
         "hubness",
+        "root_blend",
     )
     opts = {f: getattr(base, f) for f in (*fields, "velocity")}
     opts |= {f: getattr(args, f) for f in fields if getattr(args, f) is not None}
@@ -289,6 +292,12 @@ def register(subparsers) -> None:
         type=float,
         default=None,
         help="weight of the kernel's hubness correction (default 0.2; 0: the paper's kernel)",
+    )
+    s.add_argument(
+        "--root-blend",
+        type=int,
+        default=None,
+        help="frames over which the root velocity's offset fades (default 1; -1: --blend)",
     )
     s.add_argument(
         "--weighting",
