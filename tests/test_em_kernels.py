@@ -56,7 +56,7 @@ def test_rows_score_is_the_sum_of_own_texton_segment_scores(observation):
     tex, Y = _data(observation)
     rows = np.array([[0, 0, 40, 1], [0, 40, 50, 2], [1, 3, 60, 0], [2, 50, 67, 1], [0, 0, 2, 0]])
     w = np.array([1.0, 1.0, 1.0, 1.0, 0.0])  # the last row is padding (weight 0)
-    got = float(_rows_score(tex, jnp.asarray(Y), jnp.asarray(rows), jnp.asarray(w), 70))
+    got = float(_rows_score(tex, jnp.asarray(Y), jnp.asarray(rows), jnp.asarray(w)))
     want = 0.0
     for (s, b, n, i), wr in zip(rows, w, strict=True):
         if wr:

@@ -18,9 +18,9 @@ from ..motion import FeatureMap
 from ._config import LearnConfig
 from ._durations import fit_durations
 from ._fit import _SolveOptions, _texton_from_stats_impl
-from ._frame_terms import _frame_terms_impl
 from ._init import Segs
 from ._model import MotionTexture
+from ._scores import _batch_scores_impl
 from ._segment import _segment_batch
 from ._stats import _dynamics_stats_impl, _frame_stats_impl, _subspace_impl
 from ._texton import Texton
@@ -93,30 +93,32 @@ _fit_all = eqx.filter_jit(_fit_all_impl)
 
 
 @eqx.filter_jit
-def _rows_score(tex: Texton, Y: Array, rows: Array, w: Array, width: int) -> Array:
+def _rows_score(tex: Texton, Y: Array, rows: Array, w: Array) -> Array:
     """``Σ_r w_r score_{label_r}(start_r, end_r)`` over segment rows ``(seq, start, length,
-    label)``: each segment gathered into a ``(width, D)`` slab and scored by its own texton
-    only (the frame terms of the blocked kernel on the slab), so the work is
-    ``O(rows × width)``, independent of the number of textons."""
+    label)`` of ``Y (S, T, D)``: the segments' scores read off the prefix sums of the frame
+    terms of every texton (:func:`_batch_scores_impl`, the E-step's kernel), two gathers per
+    row.
+
+    The frame terms cost ``O(S·T·N_t)`` GEMM work, a fraction of a second at the paper's
+    scale; scoring each segment separately by its own texton (a Cholesky factorisation and a
+    triangular solve per segment) was sequential and, with OpenBLAS threading its triangular
+    solves, 10–100× slower on a loaded 2-core machine."""
+    sc = _batch_scores_impl(tex, Y)
     T = Y.shape[1]
-    seq, start, length, lab = rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3]
-    off = jnp.arange(width)
-    G = Y[seq[:, None], jnp.clip(start[:, None] + off[None, :], 0, T - 1)]  # (R, W, D)
-    tex_r = jax.tree.map(lambda a: a[lab, None], tex)  # (R, 1, ...): a stack of one each
-
-    def one(t: Texton, g: Array, n: Array) -> Array:
-        dyn, obs, init = _frame_terms_impl(t, g, width, with_init=True, check=False)
-        dyn_in = (off >= 2) & (off < n)
-        return (
-            init[0, 0]
-            + jnp.sum(jnp.where(dyn_in, dyn[0], 0.0))
-            + jnp.sum(jnp.where(off < n, obs[0], 0.0))
-        )
-
-    # lax.map, not vmap: the kernel's per-texton Cholesky factorisations would become one
-    # batched LAPACK call, which can deadlock jaxlib's CPU thread pool on 2 cores
-    vals = jax.lax.map(lambda a: one(*a), (tex_r, G, length))
-    return jnp.sum(jnp.where(w > 0, vals, 0.0) * w)
+    seq, b, n, i = rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3]
+    e = jnp.clip(b + n - 1, 0, T - 1)
+    dyn = (
+        sc.cum_dyn[seq, i, e + 1]
+        - sc.cum_dyn[seq, i, jnp.minimum(b + 2, T)]
+        + (e - b - 1).astype(Y.dtype) * sc.dyn_offset[seq, i]
+    )
+    obs = (
+        sc.cum_obs[seq, i, e + 1]
+        - sc.cum_obs[seq, i, b]
+        + (e - b + 1).astype(Y.dtype) * sc.obs_offset[seq, i]
+    )
+    vals = sc.init[seq, i, b] + dyn + obs
+    return jnp.sum(jnp.where(w > 0, vals * w, 0.0))
 
 
 def _capacity(n: int) -> int:
@@ -347,9 +349,7 @@ class _Runner:
         w = np.zeros(cap)
         w[:n] = 1.0
         rows[:, 3] = np.minimum(rows[:, 3], M.shape[0] - 1)
-        return float(
-            _rows_score(tex, self.Y, jnp.asarray(rows), jnp.asarray(w, self.Y.dtype), self.tmax)
-        )
+        return float(_rows_score(tex, self.Y, jnp.asarray(rows), jnp.asarray(w, self.Y.dtype)))
 
 
 def _em(
