@@ -243,7 +243,7 @@ def anatomy(tex, syn, cons, batch: int = 16, repeats: int = 3) -> dict[str, Any]
     T, D = Y.shape
     pr, sm = prior_hessian(tx, seg, Y.dtype), smoothness_hessian(T, D, Y.dtype)
     bands = tuple(w.prior**2 * pr[i] + w.smooth**2 * sm[i] for i in range(3))
-    solve_args = (*bands, w.anchor * jnp.ones(D), cons.pose_mask, jnp.zeros_like(Y), Y)
+    solve_args = (*bands, w.anchor * jnp.ones(D), cons.pose_mask, jnp.zeros_like(Y), Y, True)
 
     def pos(y, a, b):
         return kept_positions(fm, prob.sub, prob.keep, y, a, b)

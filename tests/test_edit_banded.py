@@ -7,6 +7,11 @@ solver of the same objective, the motion before editing)."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -149,6 +154,56 @@ def test_edit_many_is_a_vmap_batch_that_matches_single_edits(tex, syn):
         one = E.edit(tex, s, c)
         np.testing.assert_allclose(np.asarray(many.Y[i]), np.asarray(one.Y), atol=1e-8)
         assert bool(many.converged[i]) == bool(one.converged)
+
+
+def test_edit_many_rejects_an_empty_device_list(tex, syn):
+    cons = E.make_constraints(tex.feature_map.skeleton, T, tex.obs_dim)
+    with pytest.raises(ValueError, match="devices is empty"):
+        E.edit_many(tex, [syn, syn], [cons, cons], devices=[])
+
+
+@pytest.mark.slow  # a fresh process that learns and compiles again (about a minute)
+def test_edit_many_split_over_two_devices_equals_one_device():
+    """Two CPU devices (XLA flag, in a subprocess): a batch of 3 motions (padded to 4) split
+    between them gives the one-device batch's results, on the first device."""
+    script = textwrap.dedent(
+        """
+        import os, sys
+        import numpy as np
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        assert jax.device_count() == 2, jax.devices()
+        sys.path.insert(0, os.environ["TESTS_DIR"])
+        import edit_setup
+        import mtex_jax as mj
+        from mtex_jax import edit as E
+        tex = edit_setup.texture()
+        hand, sk, T = edit_setup.hand(tex), tex.feature_map.skeleton, edit_setup.T
+        motions = [mj.synthesize(jax.random.key(k), tex, n_frames=T) for k in (1, 2, 3)]
+        cons = []
+        for i, s in enumerate(motions):
+            sp, sh = tex.feature_map.start_of(s.motion)
+            P0 = np.asarray(tex.feature_map.joint_positions(s.Y, sp, sh))
+            tgt = P0[40 + i, sk.index(hand)] + [0.0, 0.04, 0.02]
+            cons.append(E.make_constraints(sk, T, tex.obs_dim, positions=[(hand, 40 + i, tgt)]))
+        two = E.edit_many(tex, motions, cons)
+        one = E.edit_many(tex, motions, cons, devices=jax.devices()[:1])
+        assert two.Y.shape == one.Y.shape == (3, T, tex.obs_dim)
+        assert two.Y.devices() == {jax.devices()[0]}, two.Y.devices()
+        for a, b in zip(jax.tree.leaves(two), jax.tree.leaves(one), strict=True):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-10)
+        assert np.all(np.asarray(two.converged))
+        print("SPLIT_OK", np.asarray(two.steps).tolist())
+        """
+    )
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+    env["TESTS_DIR"] = os.path.dirname(__file__)
+    r = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=900
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "SPLIT_OK" in r.stdout
 
 
 def test_float32_gauss_newton_edit(tex, syn):

@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, PartitionSpec
 
 from ..motion import FeatureMap, Motion
 from ..texture import MotionTexture, Synthesis
@@ -24,12 +25,39 @@ _bfgs_jit = eqx.filter_jit(bfgs_polish)
 
 
 @eqx.filter_jit
-def _solve_many(fm, tx, seg, Y0, sp, sh, cons, w, *, solver: str, **kw):
+def _solve_many(fm, tx, seg, Y0, sp, sh, cons, w, *, solver: str, mesh: Any = None, **kw):
     # vmap over the motions (the forward kinematics of ._fk batch without the dot_general
-    # that XLA's HLO verifier rejected under vmap)
+    # that XLA's HLO verifier rejected under vmap); with a mesh, each device runs the vmap of
+    # its share of the motions (shard_map), the shared arguments replicated
     core = solve_edit_gn if solver == "gn" else solve_edit
-    one = lambda s, y, a, b, c: core(fm, tx, s, y, a, b, c, w, **kw)
-    return jax.vmap(one)(seg, Y0, sp, sh, cons)
+    shared, static = eqx.partition((fm, tx, w), eqx.is_array)
+
+    def batch(shared, s, y, a, b, c):
+        f, t, ww = eqx.combine(shared, static)
+        return jax.vmap(lambda s, y, a, b, c: core(f, t, s, y, a, b, c, ww, **kw))(s, y, a, b, c)
+
+    if mesh is None:
+        return batch(shared, seg, Y0, sp, sh, cons)
+    rep, split = PartitionSpec(), PartitionSpec(mesh.axis_names[0])
+    sharded = jax.shard_map(
+        batch,
+        mesh=mesh,
+        in_specs=(rep, split, split, split, split, split),
+        out_specs=split,
+        check_vma=False,
+    )
+    return sharded(shared, seg, Y0, sp, sh, cons)
+
+
+def _batch_mesh(devices: Sequence[Any] | None, n: int) -> Mesh | None:
+    """The mesh that splits a batch of ``n`` motions over ``devices`` (``None``: one device,
+    or a batch of one)."""
+    devs = list(jax.devices() if devices is None else devices)
+    if not devs:
+        raise ValueError("edit_many: devices is empty")
+    if len(devs) == 1 or n == 1:
+        return None
+    return Mesh(np.asarray(devs[: min(len(devs), n)]), ("motions",))
 
 
 def _solver(solver: str, cons: Constraints) -> str:
@@ -229,6 +257,7 @@ def edit_many(
     rounds: int = 3,
     max_steps: int = 60,
     solver: str = "auto",
+    devices: Sequence[Any] | None = None,
 ) -> EditResult:
     """Edit several motions of equal length in one jit-compiled program (``vmap``).
 
@@ -238,8 +267,22 @@ def edit_many(
     solver is chosen as by :func:`edit`; under ``vmap`` a Gauss–Newton loop runs until every
     motion has stopped (each keeps its own result and ``converged``).
 
+    With several devices the batch is split between them (``shard_map``: each device runs the
+    ``vmap`` of its share, padded with copies of the first motion to a multiple of the device
+    count). One edit's solve is a chain of small dependent kernels that keeps a CPU's cores
+    only partly busy, so on a CPU give JAX one device per core before it starts
+    (``jax.config.update("jax_num_cpu_devices", os.cpu_count())``, or ``XLA_FLAGS=
+    --xla_force_host_platform_device_count=N``); the library never sets this itself.
+
+    Args:
+        texture, motions, constraints: the texture and one constraints object per motion.
+        weights, segments, floor_joints, relative, rounds, max_steps, solver: as for
+            :func:`edit`.
+        devices: the devices to split the batch over (default: ``jax.devices()``; one
+            device: a plain ``vmap``).
+
     Returns:
-        :class:`EditResult` with a leading batch axis on every field.
+        :class:`EditResult` with a leading batch axis on every field (on the default device).
     """
     fm = _feature_map(texture)
     if len(motions) == 0 or len(motions) != len(constraints):
@@ -266,18 +309,19 @@ def edit_many(
         kw["relative"] = bool(relative)
     elif not relative:
         raise ValueError("relative=False needs solver='lm'")
-    return _solve_many(
-        fm,
-        tx,
-        stack(segs),
-        Y,
-        jnp.stack([o[1] for o in obs]),
-        jnp.stack([o[2] for o in obs]),
-        C,
-        w,
-        solver=which,
-        **kw,
+    args = (stack(segs), Y, jnp.stack([o[1] for o in obs]), jnp.stack([o[2] for o in obs]), C)
+    n = len(motions)
+    mesh = _batch_mesh(devices, n)
+    if mesh is not None:
+        pad = -n % mesh.devices.size
+        args = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[:1], pad, 0)]), args)
+    out = _solve_many(
+        fm, tx, args[0], args[1], args[2], args[3], args[4], w, solver=which, mesh=mesh, **kw
     )
+    if mesh is None:
+        return out
+    first = mesh.devices.flat[0]
+    return jax.tree.map(lambda a: jax.device_put(a[:n], first), out)
 
 
 def edit_residuals(

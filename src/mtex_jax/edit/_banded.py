@@ -285,7 +285,7 @@ def solve_banded(
         hz = _band_quad(bands, anchor, jnp.where(held[:, None], delta, z * var_ch))
         return 0.5 * (hz + jnp.sum(w2 * r * r) + jnp.sum((lw * low) ** 2))
 
-    def gn_step(z: Array, shift: Array) -> tuple[Array, Array]:
+    def gn_step(z: Array, shift: Array, active: Array) -> tuple[Array, Array]:
         P, J = frame_jacobians(fn, edited(z), free_ch, colouring)
         P = P + offset(z)
         if move_root is not None:
@@ -307,7 +307,7 @@ def solve_banded(
         b = b + jnp.einsum("tkd,tk->td", Ju, jnp.einsum("tke,te->tk", Ju, z) - ru)
         H0, H1, H2 = bands
         A = A * (var_ch[:, None] * var_ch[None, :])
-        z_star, ok = _normal_solve(H0 + A, H1, H2, anchor, held, delta, -(b * var_ch))
+        z_star, ok = _normal_solve(H0 + A, H1, H2, anchor, held, delta, -(b * var_ch), active)
         return z_star - delta, ok
 
     def one_round(carry, _):
@@ -318,8 +318,8 @@ def solve_banded(
             return (k < max_steps) & ~done
 
         def body(s):
-            z, c, k, _done, ok = s
-            z_gn, ok_k = gn_step(z, shift)
+            z, c, k, done, ok = s
+            z_gn, ok_k = gn_step(z, shift, (k < max_steps) & ~done)
             dz = z_gn - z
 
             def worse(b):
@@ -355,13 +355,20 @@ def solve_banded(
 
 
 @jax.custom_batching.custom_vmap
-def _normal_solve(H0, H1, H2, anchor, held, delta, linear) -> tuple[Array, Array]:
+def _normal_solve(H0, H1, H2, anchor, held, delta, linear, active) -> tuple[Array, Array]:
     """The Gauss–Newton normal equations' solution and the factorisation status.
 
-    Under ``vmap`` the motions are factorised one after the other (``lax.map``): a batched
-    block Cholesky hands LAPACK's Cholesky and triangular solves a batch, which XLA's CPU
-    backend runs orders of magnitude slower (a batch of 4 motions of 600 frames did not finish
-    in minutes, one takes 0.3 s); everything else in the solve stays batched."""
+    ``active`` (a bool) says whether the caller will use the result: a motion of a ``vmap``
+    batch that has already stopped still runs the loop body until every motion has, and its
+    factorisation is skipped (zeros returned). Without ``vmap`` the solve always runs.
+
+    Under ``vmap`` the motions are factorised one after the other (``lax.map``, with
+    ``lax.cond`` on ``active``): a batched block Cholesky hands LAPACK a batch of triangular
+    solves, which XLA's CPU backend runs orders of magnitude slower (a ``108 × 108`` solve
+    for the inverse of a pivot block: 0.09 ms alone, 21 ms in a batch of 4; a batch of 4
+    motions of 600 frames did not finish in 5 minutes, one takes 0.13 s); everything else in
+    the solve stays batched."""
+    del active
     wh = whitening((H0, H1, H2), anchor, held, delta, linear)
     return wh.z_star, wh.factor.ok
 
@@ -372,8 +379,13 @@ def _normal_solve_vmap(axis_size: int, in_batched, *args):
         a if b else jnp.broadcast_to(a, (axis_size, *jnp.shape(a)))
         for a, b in zip(args, in_batched, strict=True)
     )
-    out = lax.map(lambda xs: _normal_solve(*xs), full)
-    return out, (True, True)
+
+    def one(xs):
+        *a, active = xs
+        skip = lambda *_: (jnp.zeros_like(a[-1]), jnp.asarray(True))
+        return lax.cond(active, lambda *b: _normal_solve(*b, active), skip, *a)
+
+    return lax.map(one, full), (True, True)
 
 
 def _band_quad(bands, anchor: Array, v: Array) -> Array:
