@@ -239,6 +239,52 @@ def test_sharded_learning_equals_single_device(tmp_path):
     assert "SHARDED_OK" in r.stdout
 
 
+def test_learn_does_not_shard_over_one_process_cpu_devices_by_default():
+    """``LearnConfig.shard=None`` (default) keeps the data on one device when every device is
+    a CPU device of this process (their collectives stalled a learn; see the slow test)."""
+    import jax
+
+    from mtex_jax.texture._em import _Runner
+
+    ys = [np.zeros((50, 3)), np.zeros((40, 3))]
+    cfg = LearnConfig(tmin=10, tmax=20, state_dim=2)
+    assert cfg.shard is None
+    assert _Runner(ys, cfg, devices=jax.devices() * 2).sharding is None
+
+
+@pytest.mark.slow  # a fresh process (about a minute)
+def test_learn_on_two_cpu_devices_finishes_and_equals_one(cmu_dir):
+    """Two CPU devices (XLA flag, in a subprocess), two salsa clips, the default sharding: the
+    learn finishes (with ``shard=True`` it stalled in an all-reduce that one device never
+    joined) and gives the one-device model."""
+    script = textwrap.dedent(
+        """
+        import os, sys
+        import numpy as np
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        assert jax.device_count() == 2, jax.devices()
+        import mtex_jax as mj
+        from mtex_jax.texture import LearnConfig, learn
+        d = os.environ["CMU_DIR"]
+        clips = [mj.io.read_bvh(os.path.join(d, f"60_0{i}.bvh")).resample(60.0) for i in (1, 2)]
+        base = dict(tmin=60, tmax=180, state_dim=12, fps=60.0, min_segments=3, max_iter=3)
+        two = learn(clips, LearnConfig(**base))
+        ref = learn(clips, LearnConfig(**base, shard=False))
+        assert np.array_equal(np.asarray(two.segments), np.asarray(ref.segments))
+        print("TWO_CPU_OK", two.n_textons)
+        """
+    )
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+    env["CMU_DIR"] = str(cmu_dir)
+    r = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "TWO_CPU_OK" in r.stdout
+
+
 def test_learn_float32_smoke():
     """float32 in, float32 out, finite: short, very different clips stress the fits."""
     import jax

@@ -41,7 +41,10 @@ class LearnConfig:
         rho_max: bound on every texton's companion spectral radius (default 1: stable
             textons, so noise-driven synthesis stays bounded); ``None`` = unbounded (the
             paper).
-        shard: split sequences across all JAX devices when there is more than one.
+        shard: split sequences across all JAX devices when there is more than one. ``None``
+            (default): only when they are not CPU devices: XLA:CPU's devices of one process
+            share one thread pool, and a learn on several of them stalled in an all-reduce
+            that one device never joined (the salsa clips, 2 devices on 2 cores).
         bic_thresholds: thresholds to choose from by BIC (see :func:`bic_select`).
         observation: the observation model of every texton (see :class:`Texton`):
             ``"residual"`` (default: the residual outside the state subspace follows its own
@@ -75,7 +78,7 @@ class LearnConfig:
     sigma2_floor: float = 1e-6
     rho_max: float | None = 1.0
     init_prior_weight: float = 4.0
-    shard: bool = True
+    shard: bool | None = None
     bic_thresholds: tuple[float, ...] | None = None
     min_segments: int = 3
     observation: str = "residual"

@@ -418,8 +418,8 @@ def learn_distributed(
                                    local_device_ids=[0])
         model = learn_distributed(my_clips, LearnConfig(fps=60.0))
 
-    On several hosts, run one process per host (it uses the host's local devices when
-    ``config.shard``) or one per accelerator (``local_device_ids=[i]``), every process with
+    On several hosts, run one process per host (its clips split over the host's local devices
+    as ``config.shard`` says) or one per accelerator (``local_device_ids=[i]``), every process with
     the coordinator's ``host:port`` (a port process 0's host can open), ``num_processes`` and
     its own ``process_id``; on a cluster whose launcher JAX recognises (SLURM, Open MPI,
     Cloud TPU) a bare ``jax.distributed.initialize()`` finds them. ``mtex learn

@@ -200,13 +200,16 @@ class _Runner:
         T: int | None = None,
     ) -> None:
         """``ys`` padded to ``T`` frames (default: the longest) and put on ``devices``
-        (default: all of JAX's, sharded when ``config.shard``)."""
+        (default: all of JAX's, sharded as ``config.shard`` says)."""
         self.ys = ys
         self.config = config
         self.n_real = len(ys)
         self.n_frames = sum(y.shape[0] for y in ys)  # frames of all clips (every process's)
         devices = jax.devices() if devices is None else devices
-        n_dev = len(devices) if config.shard else 1
+        shard = config.shard
+        if shard is None:  # not over one process's CPU devices (LearnConfig.shard)
+            shard = any(d.platform != "cpu" for d in devices)
+        n_dev = len(devices) if shard else 1
         n_seq = -(-self.n_real // n_dev) * n_dev
         ypad, nf = _pad(ys, n_seq, T)
         self.T = ypad.shape[1]
