@@ -121,6 +121,7 @@ def test_learn_synth_and_choreograph_on_the_embedded_clips(tmp_path):
     assert r.returncode == 2 and ".bvh" in r.stderr
 
 
+@pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_learn_and_segment_commands(tmp_path, cmu_files):
     model = tmp_path / "salsa.npz"
     r = run_cli(

@@ -7,11 +7,6 @@ solver of the same objective, the motion before editing)."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import textwrap
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,6 +15,7 @@ from jax.test_util import check_grads
 
 import edit_setup
 import mtex_jax as mj
+from cpu_devices import run_with_cpu_devices
 from mtex_jax import edit as E
 from mtex_jax.edit._banded import (
     channel_colouring,
@@ -104,6 +100,7 @@ def test_frame_jacobians_are_the_diagonal_blocks_of_the_dense_jacobian(tex, syn)
     check_grads(fn, (Y,), order=1, modes=("fwd", "rev"), eps=1e-6)
 
 
+@pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_gauss_newton_and_levenberg_marquardt_agree(tex, syn):
     sk = tex.feature_map.skeleton
     hand = _hand(tex)
@@ -166,8 +163,7 @@ def test_edit_many_rejects_an_empty_device_list(tex, syn):
 def test_edit_many_split_over_two_devices_equals_one_device():
     """Two CPU devices (XLA flag, in a subprocess): a batch of 3 motions (padded to 4) split
     between them gives the one-device batch's results, on the first device."""
-    script = textwrap.dedent(
-        """
+    script = """
         import os, sys
         import numpy as np
         import jax
@@ -195,15 +191,7 @@ def test_edit_many_split_over_two_devices_equals_one_device():
         assert np.all(np.asarray(two.converged))
         print("SPLIT_OK", np.asarray(two.steps).tolist())
         """
-    )
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
-    env["TESTS_DIR"] = os.path.dirname(__file__)
-    r = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=900
-    )
-    assert r.returncode == 0, r.stderr[-3000:]
-    assert "SPLIT_OK" in r.stdout
+    run_with_cpu_devices(script, "SPLIT_OK", timeout=900)
 
 
 def test_float32_gauss_newton_edit(tex, syn):

@@ -64,6 +64,7 @@ def test_evaluate_on_cmu_clips(cmu_model, cmu_files, tmp_path, capsys):
     assert "AR(2)" in text and "skating" in text
 
 
+@pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_evaluate_on_embedded_data(tmp_path, capsys):
     clips = [mj.load_example(n) for n in ("dance_a", "dance_b", "walk", "run")]
     cfg = mj.LearnConfig(

@@ -2,16 +2,12 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import textwrap
-
 import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
 import mtex_jax as mj
+from cpu_devices import run_with_cpu_devices
 from mtex_jax.texture import LearnConfig, MotionTexture, learn, load_texture
 from paper_settings import PAPER
 
@@ -207,8 +203,7 @@ def test_learn_input_errors():
 @pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_sharded_learning_equals_single_device(tmp_path):
     """Two CPU devices (XLA flag, in a subprocess): the same model as with one device."""
-    script = textwrap.dedent(
-        """
+    script = """
         import os, sys
         import numpy as np
         import jax
@@ -228,15 +223,7 @@ def test_sharded_learning_equals_single_device(tmp_path):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)
         print("SHARDED_OK", len(np.asarray(one.segments)))
         """
-    )
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
-    env["TESTS_DIR"] = os.path.dirname(__file__)
-    r = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=900
-    )
-    assert r.returncode == 0, r.stderr[-3000:]
-    assert "SHARDED_OK" in r.stdout
+    run_with_cpu_devices(script, "SHARDED_OK", timeout=900)
 
 
 def test_learn_does_not_shard_over_one_process_cpu_devices_by_default():
@@ -257,8 +244,7 @@ def test_learn_on_two_cpu_devices_finishes_and_equals_one(cmu_dir):
     """Two CPU devices (XLA flag, in a subprocess), two salsa clips, the default sharding: the
     learn finishes (with ``shard=True`` it stalled in an all-reduce that one device never
     joined) and gives the one-device model."""
-    script = textwrap.dedent(
-        """
+    script = """
         import os, sys
         import numpy as np
         import jax
@@ -274,15 +260,7 @@ def test_learn_on_two_cpu_devices_finishes_and_equals_one(cmu_dir):
         assert np.array_equal(np.asarray(two.segments), np.asarray(ref.segments))
         print("TWO_CPU_OK", two.n_textons)
         """
-    )
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
-    env["CMU_DIR"] = str(cmu_dir)
-    r = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600
-    )
-    assert r.returncode == 0, r.stderr[-3000:]
-    assert "TWO_CPU_OK" in r.stdout
+    run_with_cpu_devices(script, "TWO_CPU_OK", timeout=600, CMU_DIR=str(cmu_dir))
 
 
 def test_learn_float32_smoke():
