@@ -153,10 +153,12 @@ def test_edit_many_is_a_vmap_batch_that_matches_single_edits(tex, syn):
         assert bool(many.converged[i]) == bool(one.converged)
 
 
-def test_edit_many_rejects_an_empty_device_list(tex, syn):
+def test_edit_many_rejects_bad_devices(tex, syn):
     cons = E.make_constraints(tex.feature_map.skeleton, T, tex.obs_dim)
     with pytest.raises(ValueError, match="devices is empty"):
         E.edit_many(tex, [syn, syn], [cons, cons], devices=[])
+    with pytest.raises(TypeError, match="must be JAX devices"):
+        E.edit_many(tex, [syn, syn], [cons, cons], devices=["cpu"])
 
 
 @pytest.mark.slow  # a fresh process that learns and compiles again (about a minute)

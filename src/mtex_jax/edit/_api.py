@@ -55,6 +55,9 @@ def _batch_mesh(devices: Sequence[Any] | None, n: int) -> Mesh | None:
     devs = list(jax.devices() if devices is None else devices)
     if not devs:
         raise ValueError("edit_many: devices is empty")
+    bad = [d for d in devs if not isinstance(d, jax.Device)]
+    if bad:
+        raise TypeError(f"edit_many: devices must be JAX devices, got {type(bad[0]).__name__}")
     if len(devs) == 1 or n == 1:
         return None
     return Mesh(np.asarray(devs[: min(len(devs), n)]), ("motions",))
