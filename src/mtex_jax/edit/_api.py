@@ -270,10 +270,11 @@ def edit_many(
     solver is chosen as by :func:`edit`; under ``vmap`` a Gauss–Newton loop runs until every
     motion has stopped (each keeps its own result and ``converged``).
 
-    With several devices the batch is split between them (``shard_map``: each device runs the
-    ``vmap`` of its share, padded with copies of the first motion to a multiple of the device
-    count). One edit's solve is a chain of small dependent kernels that keeps a CPU's cores
-    only partly busy, so on a CPU give JAX one device per core before it starts
+    With several devices a Gauss–Newton batch is split between them (``shard_map``: each device
+    runs the ``vmap`` of its share, padded with copies of the first motion to a multiple of the
+    device count); a Levenberg–Marquardt batch (velocity targets) runs as one ``vmap``. One
+    edit's solve is a chain of small dependent kernels that keeps a CPU's cores only partly
+    busy, so on a CPU give JAX one device per core before it starts
     (``jax.config.update("jax_num_cpu_devices", os.cpu_count())``, or ``XLA_FLAGS=
     --xla_force_host_platform_device_count=N``); the library never sets this itself.
 
@@ -314,7 +315,9 @@ def edit_many(
         raise ValueError("relative=False needs solver='lm'")
     args = (stack(segs), Y, jnp.stack([o[1] for o in obs]), jnp.stack([o[2] for o in obs]), C)
     n = len(motions)
-    mesh = _batch_mesh(devices, n)
+    # Levenberg–Marquardt: one vmap (equinox's closure conversion inside optimistix rejects
+    # the per-device types of shard_map: 'called with different dynamic arguments')
+    mesh = _batch_mesh(devices, n) if which == "gn" else None
     if mesh is not None:
         pad = -n % mesh.devices.size
         args = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[:1], pad, 0)]), args)

@@ -48,7 +48,7 @@ from ._prior import (
     prior_residuals,
     smoothness_hessian,
 )
-from ._whiten import Whitening, whitening
+from ._whiten import Whitening, whitening_each
 
 __all__ = ["EditResult", "bfgs_polish", "problem", "solve_edit"]
 
@@ -273,7 +273,7 @@ def problem(fm, tx, seg, Y0, sp, sh, cons, w, relative: bool, keep) -> _Problem:
     delta = jnp.where(held[:, None], cons.poses.astype(dtype) - Y0, 0.0)
     is_root = np.array([n.startswith("root.d") for n in fm.active_names])  # dh0, dh1, dyaw
     anchor = jnp.where(jnp.asarray(is_root), jnp.hypot(w.anchor, w.root), w.anchor)
-    wh = whitening(bands, anchor, held, delta, linear)
+    wh = whitening_each(bands, anchor, held, delta, linear)
     zero = jnp.zeros((), dtype)
     prob = _Problem(fm, tx, seg, wh, Y0, r0, sp, sh, cons, zero, zero, w, sub, keep)
     P0, root0 = prob.kinematics(Y0)
