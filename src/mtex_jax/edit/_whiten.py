@@ -124,19 +124,10 @@ def band_matvec(bands: tuple[Array, Array, Array], v: Float[Array, "T D"]) -> Fl
     return out
 
 
-@jax.custom_batching.custom_vmap
-def whitening_each(
-    bands: tuple[Array, Array, Array],
-    anchor: Float[Array, " D"],
-    held: Array,
-    delta: Float[Array, "T D"],
-    linear: Float[Array, "T D"],
-) -> Whitening:
-    """:func:`whitening`, factorised one motion after the other under ``vmap`` (``lax.map``):
-    XLA's CPU backend runs the batched triangular solves of a batched block Cholesky about 60×
-    slower per matrix than single ones (a ``vmap`` of three 120-frame motions did not finish
-    in 5 minutes)."""
-    return whitening(bands, anchor, held, delta, linear)
+# :func:`whitening`, factorised one motion after the other under ``vmap`` (``lax.map``): XLA's
+# CPU backend runs the batched triangular solves of a batched block Cholesky about 60× slower
+# per matrix than single ones (a vmap of three 120-frame motions did not finish in 5 minutes)
+whitening_each = jax.custom_batching.custom_vmap(whitening)
 
 
 @whitening_each.def_vmap
