@@ -316,7 +316,9 @@ def main() -> None:
     log("implicit model (30 Hz, window 10): tree and exact samplers from held-out starts")
     t_imp, model = timed(lambda: mj.implicit.learn(train30, window=10, fps=IMPLICIT_FPS))
     # the paper's settings (issue 18): per-channel γ, absolute poses, a search every frame
-    paper_model = mj.implicit.learn(train30, window=10, fps=IMPLICIT_FPS, weighting="channel")
+    paper_model = mj.implicit.learn(
+        train30, window=10, fps=IMPLICIT_FPS, weighting="channel", recent_weight=0.0
+    )
     res["implicit"] = dict(
         learn_s=t_imp,
         examples=int(np.asarray(model.codes).shape[0]),

@@ -41,7 +41,7 @@ VALID_HELD = ["60_09", "60_10", "60_11"]
 # of the training data seen through the same start windows and sample size)
 REPLAY = (
     "replay of training clips (reference):"
-    "velocity=0,blend=0,continuation=1000000,max_run=0,hubness=0"
+    "velocity=0,blend=0,continuation=1000000,max_run=0,hubness=0,foot_lock=0"
 )
 
 
@@ -55,14 +55,14 @@ def parse_config(text: str) -> tuple[str, dict[str, Any], dict[str, Any]]:
     if name.startswith("paper") or "paper settings" in name:
         p = SynthesisConfig.paper()
         syn = {f: getattr(p, f) for f in SynthesisConfig.__dataclass_fields__}
-        lrn = {"weighting": "channel"}
+        lrn = {"weighting": "channel", "recent_weight": 0.0}
     for kv in filter(None, rest.split(",")):
         k, _, v = kv.partition("=")
         if k in ("weighting",):
             lrn[k] = v
-        elif k in ("min_explained",):
+        elif k in ("min_explained", "recent_weight"):
             lrn[k] = float(v)
-        elif k == "hubness":
+        elif k in ("hubness", "foot_lock", "lock_smoothing"):
             syn[k] = float(v)
         elif k == "velocity":
             syn[k] = v.lower() in ("1", "true", "yes")
@@ -129,7 +129,7 @@ def run(
         print(
             f"{name:28s} speed {r['speed_ratio']:6.2f} acc {r['acceleration_ratio']:6.2f} "
             f"jerk {r['jerk_ratio']:6.2f} jumps {r['jump_share_above_p99']:.3f} "
-            f"copy {r.get('copy_fraction', float('nan')):.2f} "
+            f"skate {r['skating_median']:.3f} copy {r.get('copy_fraction', float('nan')):.2f} "
             f"longest {r.get('copy_longest_s', float('nan')):.1f}s  [{wall:.0f}s] {text}",
             flush=True,
         )
@@ -162,7 +162,8 @@ def write(res: dict[str, Any], out: Path) -> None:
         "Ratios: W1 distance over the real-vs-real floor. Jumps: share of frame-to-frame "
         "maximum joint jumps above the judged clips' p99 (real clips: "
         f"{_f(real.get('jump_share_above_p99'), 3)}). Copy: share of frames continuing the "
-        "previous database frame; longest verbatim run.",
+        "previous database frame; longest verbatim run. Skating: median horizontal speed of "
+        "low feet (``ContactModel.skating``).",
         "",
     ]
     for k, m in res["models"].items():
@@ -172,14 +173,15 @@ def write(res: dict[str, Any], out: Path) -> None:
         )
     L += [
         "",
-        "| set | speed | acc | jerk | jumps > p99 | copy | longest (s) | config |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+        "| set | speed | acc | jerk | jumps > p99 | skating (m/s) | copy | longest (s) | config |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
     for name, r in res["rows"].items():
         L.append(
             f"| {name} | {_f(r['speed_ratio'])} | {_f(r['acceleration_ratio'])} "
             f"| {_f(r['jerk_ratio'])} | {_f(r['jump_share_above_p99'], 3)} "
-            f"| {_f(r.get('copy_fraction'))} | {_f(r.get('copy_longest_s'), 1)} "
+            f"| {_f(r.get('skating_median'))} | {_f(r.get('copy_fraction'))} "
+            f"| {_f(r.get('copy_longest_s'), 1)} "
             f"| `{r.get('config', '')}` |"
         )
     out.with_suffix(".md").write_text("\n".join(L) + "\n")
@@ -202,8 +204,9 @@ def main() -> None:
         default=[
             "implicit tree sampler (defaults):",
             "implicit exact sampler (defaults):sampler=exact",
-            "tree, root offset over the whole blend (earlier defaults):root_blend=-1",
-            "tree, no hubness correction, blend 4 (older defaults):hubness=0,blend=4,root_blend=-1",
+            "tree, no foot lock:foot_lock=0",
+            "tree, window distance of the paper (recent_weight 0):recent_weight=0",
+            "tree, the defaults before (recent_weight 0, no foot lock):recent_weight=0,foot_lock=0",
             "implicit tree sampler, paper settings:",
             "implicit exact sampler, paper settings:sampler=exact",
             REPLAY,

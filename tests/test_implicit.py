@@ -100,7 +100,8 @@ def test_windows_are_per_clip_with_successors(model, train):
         np.testing.assert_array_equal(fi, np.arange(k) + WINDOW)
         np.testing.assert_allclose(np.asarray(model.successors[rows]), psi[fi], atol=1e-12)
         # the newest pose of window j is frame frame_index[j]  (ψ row frame − 1)
-        newest = probe[:k].reshape(k, WINDOW, -1)[:, -1] * gamma
+        # (model coordinates weigh the newest pose vector by √(1 + recent_weight))
+        newest = probe[:k].reshape(k, WINDOW, -1)[:, -1] * gamma / np.sqrt(1 + model.recent_weight)
         np.testing.assert_allclose(newest, psi[fi - 1], atol=1e-10)
         assert np.all(np.asarray(model.clip_index[rows]) == c)
         start += k

@@ -32,6 +32,25 @@ def model(clips) -> ImplicitModel:
     return mj.implicit.learn(clips[1:], WINDOW)
 
 
+def _lock(model: ImplicitModel, cfg: SynthesisConfig, prev, new, ex_prev, ex_new, i, delta):
+    """The foot lock of ``_feet``'s docstring in NumPy (FK through the feature map's decode)."""
+    fm = model.feature_map
+    feet = list(model.feet)
+    g = np.asarray(fm.joint_positions(np.stack([prev, new])))[:, feet]
+    e = np.asarray(fm.joint_positions(np.stack([ex_prev, ex_new])))[:, feet]
+    slide = (g[1] - g[0]) - (e[1] - e[0])
+    c = np.asarray(model.foot_contact)[i]
+    delta = cfg.lock_smoothing * delta + (1 - cfg.lock_smoothing) * (
+        (c[:, None] * slide).sum(0) / max(c.sum(), 1.0)
+    )
+    _, h0, h1 = mj.motion.ground_axes(fm.skeleton.up_axis)
+    act = list(fm.active)
+    new = new.copy()
+    new[act.index(0)] -= cfg.foot_lock * delta[h0] / float(fm.scale[0])
+    new[act.index(1)] -= cfg.foot_lock * delta[h1] / float(fm.scale[1])
+    return new, delta
+
+
 def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.ndarray:
     """The generator of ``_synthesis``'s docstring in NumPy, for given example indices."""
     dim = model.feature_map.dim
@@ -41,6 +60,7 @@ def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.nd
     vel = np.zeros(dim, bool)
     vel[list(mj.implicit.velocity_channels(model.feature_map))] = True
     prev, cur, off, age, out = seed_y[-1], -1, np.zeros(dim), 0, []
+    delta = np.zeros(3)
     for i in idx:
         cont = cur >= 0 and i == cur + 1 and i < len(clip) and clip[i] == clip[cur]
         if not cont:
@@ -55,7 +75,10 @@ def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.nd
                 w[vel] = 1 - (3 * xr * xr - 2 * xr**3) if cfg.root_blend > 0 else 0.0
         else:
             w = np.where(vel, 0.0, 1.0)
-        prev = y_next[i] + w * off
+        new = y_next[i] + w * off
+        if cfg.foot_lock > 0:
+            new, delta = _lock(model, cfg, prev, new, y_next[i] - dy[i], y_next[i], i, delta)
+        prev = new
         out.append(prev)
         cur = i
     return np.asarray(out)
@@ -70,6 +93,8 @@ def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.nd
         SynthesisConfig(leaf_cap=2, candidates=3),
         SynthesisConfig(root_blend=-1),
         SynthesisConfig(blend=4, root_blend=0, continuation=3),
+        SynthesisConfig(foot_lock=0.0),
+        SynthesisConfig(foot_lock=0.5, lock_smoothing=0.0, continuation=2),
         SynthesisConfig.paper(),
     ],
 )
@@ -101,7 +126,7 @@ def test_velocity_form_applies_the_examples_change_of_pose(model, clips):
 def test_blending_rejoins_the_example_after_blend_frames(model, clips):
     """With blend B, B + 1 frames after a transition the pose is the example's own pose."""
     b = 3
-    cfg = SynthesisConfig(blend=b, continuation=8, lookahead=8, max_run=0)
+    cfg = SynthesisConfig(blend=b, continuation=8, lookahead=8, max_run=0, foot_lock=0.0)
     y, idx = model.synthesize_poses(jax.random.PRNGKey(2), clips[0], N, 1.0, config=cfg)
     y, idx = np.asarray(y)[WINDOW:], np.asarray(idx)
     dim = model.feature_map.dim
@@ -120,7 +145,9 @@ def test_root_blend_fades_the_root_velocity_on_its_own(model, clips):
     succ_y = np.asarray(model.successors)[:, :dim]
     key = jax.random.PRNGKey(4)
     rb = 2
-    cfg = SynthesisConfig(blend=6, root_blend=rb, continuation=8, lookahead=8, max_run=0)
+    cfg = SynthesisConfig(
+        blend=6, root_blend=rb, continuation=8, lookahead=8, max_run=0, foot_lock=0.0
+    )
     y, idx = model.synthesize_poses(key, clips[0], N, 1.0, config=cfg)
     y, idx = np.asarray(y)[WINDOW:], np.asarray(idx)
     for t in range(0, N - 8, 8):  # a search every 8 frames
@@ -332,6 +359,11 @@ def test_bad_options_raise_clear_errors(model, clips):
         ({"leaf": "nearest"}, "leaf"),
         ({"velocity": 1}, "velocity"),
         ({"velocity": False, "blend": 3}, "blend"),
+        ({"foot_lock": 1.5}, "foot_lock"),
+        ({"foot_lock": -0.1}, "foot_lock"),
+        ({"foot_lock": True}, "foot_lock"),
+        ({"lock_smoothing": 1.0}, "lock_smoothing"),
+        ({"lock_smoothing": float("nan")}, "lock_smoothing"),
     )
     for kw, name in bad:
         with pytest.raises(ValueError, match=name):
@@ -344,6 +376,9 @@ def test_bad_options_raise_clear_errors(model, clips):
         mj.implicit.learn(clips[1:3], WINDOW, weighting="joint")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="min_explained"):
         mj.implicit.learn(clips[1:3], WINDOW, min_explained=1.5)
+    for bad_w in (-1.0, float("nan"), "3", True):
+        with pytest.raises(ValueError, match="recent_weight"):
+            mj.implicit.learn(clips[1:3], WINDOW, recent_weight=bad_w)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="not both"):
         mj.implicit.learn(clips[1:3], WINDOW, min_explained=0.5, n_components=4)
 
@@ -380,6 +415,10 @@ def test_cli_synthesis_options(tmp_path, capsys):
         "0.3",
         "--root-blend",
         "2",
+        "--recent-weight",
+        "0",
+        "--foot-lock",
+        "0.5",
     ]
     assert main(base + opts) == 0
     assert "wrote" in capsys.readouterr().out
@@ -393,6 +432,8 @@ def test_cli_synthesis_options(tmp_path, capsys):
         (["--leaf-cap", "-1"], "leaf-cap"),
         (["--hubness", "-1"], "hubness"),
         (["--root-blend", "-2"], "root-blend"),
+        (["--foot-lock", "1.5"], "foot-lock"),
+        (["--recent-weight", "-1"], "recent-weight"),
     ):
         assert main(base + bad) == 2
         err = capsys.readouterr().err

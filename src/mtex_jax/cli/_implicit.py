@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
 from ..core import atomic_write
 from ._validators import non_negative, positive, positive_int
@@ -40,9 +41,17 @@ def _build(args: argparse.Namespace, motions):
     me = getattr(args, "min_explained", None)
     if me is not None and not 0 < me <= 1:
         raise ValueError(f"--min-explained must be in (0, 1], got {me}")
+    rw = getattr(args, "recent_weight", None)
+    if rw is not None and not 0 <= rw < float("inf"):
+        raise ValueError(f"--recent-weight must be a finite number ≥ 0, got {rw}")
+    extra: dict[str, Any] = {} if rw is None else {"recent_weight": float(rw)}
     t0 = time.perf_counter()
     model = implicit_learn(
-        motions, args.window, weighting=getattr(args, "weighting", "body"), min_explained=me
+        motions,
+        args.window,
+        weighting=getattr(args, "weighting", "body"),
+        min_explained=me,
+        **extra,
     )
     s = model.summary()
     print(
@@ -117,6 +126,8 @@ def _synthesis_config(args: argparse.Namespace):
         raise ValueError(f"--hubness must be a finite number ≥ 0, got {args.hubness}")
     if args.root_blend is not None and args.root_blend < -1:
         raise ValueError(f"--root-blend must be ≥ -1, got {args.root_blend}")
+    if args.foot_lock is not None and not 0 <= args.foot_lock <= 1:
+        raise ValueError(f"--foot-lock must be in [0, 1], got {args.foot_lock}")
     fields = (
         "blend",
         "leaf",
@@ -127,6 +138,7 @@ def _synthesis_config(args: argparse.Namespace):
         "leaf_cap",
         "hubness",
         "root_blend",
+        "foot_lock",
     )
     opts = {f: getattr(base, f) for f in (*fields, "velocity")}
     opts |= {f: getattr(args, f) for f in fields if getattr(args, f) is not None}
@@ -310,6 +322,19 @@ def register(subparsers) -> None:
         type=float,
         default=None,
         help="choose the tree depth b by explained variance (default b = floor(log2 n))",
+    )
+    s.add_argument(
+        "--recent-weight",
+        type=float,
+        default=None,
+        help="extra weight of the newest pose in the window distance (default 32; 0: the paper)",
+    )
+    s.add_argument(
+        "--foot-lock",
+        type=float,
+        default=None,
+        help="strength in [0, 1] of the root correction that keeps planted feet in place "
+        "(default 1; --paper: 0)",
     )
     s.add_argument(
         "--start", type=int, default=0, help="frame of the first clip that starts the seed window"

@@ -16,10 +16,12 @@ Pose vectors are kept in these *FeatureMap units* (``successors``, :meth:`pose_v
 
 *Window* of frame ``i``: the ``d`` pose vectors ``ψ_{i−d+1}, …, ψ_i`` (oldest first; the paper
 writes ``Ψ_i = [ψ_i, …, ψ_{i−d}]`` newest first — the order changes no distance), divided
-parameter-wise by the database standard deviation ``γ`` (``Γ = diag(γ²)``, IP Eq. 2–3) and
+parameter-wise by the database standard deviation ``γ`` (``Γ = diag(γ²)``, IP Eq. 2–3), the
+newest one multiplied by ``√(1 + w)`` (``w = recent_weight``; ``0`` in the paper) and
 flattened to ``W = d·P`` numbers. These *model coordinates* are what :meth:`windows_of`
 returns and what the samplers take as probes. In them the Mahalanobis distance of IP Eq. 3,
-``(Ψ_i − Φ_t)ᵀ Γ_d⁻¹ (Ψ_i − Φ_t)``, is the squared Euclidean distance (:meth:`distance2`).
+``(Ψ_i − Φ_t)ᵀ Γ_d⁻¹ (Ψ_i − Φ_t)`` (plus ``w`` times that of the newest pose vectors), is the
+squared Euclidean distance (:meth:`distance2`).
 Database windows never straddle two clips, and each has its successor ``ψ_{i+1}`` in the same
 clip, so a clip of ``T`` frames gives ``T − 1 − d`` examples.
 
@@ -70,6 +72,7 @@ from ._windows import (
     _is_concrete,
     _window_view,
     pose_vectors,
+    time_weights,
 )
 
 LeafRule = Literal["uniform", "weighted"]
@@ -95,6 +98,10 @@ class ImplicitModel(eqx.Module):
         weighting: how ``γ`` was chosen (static): ``"channel"`` (the paper: ``γ`` is each
             parameter's database standard deviation) or ``"body"`` (joint-reach weights,
             pose and velocity groups whitened; see :func:`~mtex_jax.implicit.learn`).
+        recent_weight: ``w``: the newest pose vector of a window is scaled by ``√(1 + w)``
+            in model coordinates (static; ``0``: the paper).
+        feet: foot joint indices (static; :func:`mtex_jax.motion.foot_joints`), ``()`` if the
+            skeleton has none.
         gamma: ``(P,)`` scale of each pose parameter in model coordinates (``Γ = diag(γ²)``).
         pose_std: ``(P,)`` database standard deviation of each pose parameter (the unit of
             the synthesis and tracking noise).
@@ -118,6 +125,8 @@ class ImplicitModel(eqx.Module):
         neighbour_radius: ``(n,)`` mean squared distance ``r_i`` of each window to its 10
             nearest database windows (not overlapping it), the local scale of the synthesis
             kernel's hubness correction (:mod:`~mtex_jax.implicit._hubness`).
+        foot_contact: ``(n, F)`` contact weight of each foot in each example's successor
+            frame, for the synthesis foot lock (:mod:`~mtex_jax.implicit._feet`).
     """
 
     feature_map: FeatureMap
@@ -127,6 +136,8 @@ class ImplicitModel(eqx.Module):
     explained_variance: float = eqx.field(static=True)
     clip_sizes: tuple[int, ...] = eqx.field(static=True)
     weighting: str = eqx.field(static=True)
+    recent_weight: float = eqx.field(static=True)
+    feet: tuple[int, ...] = eqx.field(static=True)
     gamma: Float[Array, " P"]
     pose_std: Float[Array, " P"]
     mean: Float[Array, " W"]
@@ -142,6 +153,7 @@ class ImplicitModel(eqx.Module):
     frame_index: Int[Array, " n"]
     acceleration_std: Float[Array, " D"]
     neighbour_radius: Float[Array, " n"]
+    foot_contact: Float[Array, "n F"]
 
     def __check_init__(self) -> None:
         d, b = self.window, self.n_components
@@ -150,6 +162,8 @@ class ImplicitModel(eqx.Module):
         n = np.shape(self.windows)[0] if np.ndim(self.windows) == 2 else -1
         if d < 1:
             raise ValueError(f"ImplicitModel.window must be ≥ 1, got {d}")
+        if not 0 <= self.recent_weight < np.inf:
+            raise ValueError(f"ImplicitModel.recent_weight must be ≥ 0, got {self.recent_weight}")
         if self.weighting not in ("body", "channel"):
             raise ValueError(
                 f"ImplicitModel.weighting must be 'body' or 'channel', got {self.weighting!r}"
@@ -174,6 +188,7 @@ class ImplicitModel(eqx.Module):
             "frame_index": (n,),
             "acceleration_std": (p // 2,),
             "neighbour_radius": (n,),
+            "foot_contact": (n, len(self.feet)),
         }
         for name, shape in expected.items():
             got = np.shape(getattr(self, name))
@@ -215,6 +230,7 @@ class ImplicitModel(eqx.Module):
             "n_components": self.n_components,
             "explained_variance": self.explained_variance,
             "weighting": self.weighting,
+            "recent_weight": self.recent_weight,
             "leaf_max": self.leaf_max,
             "nonempty_leaves": nonempty,
             "leaves": 1 << self.n_components,
@@ -244,14 +260,16 @@ class ImplicitModel(eqx.Module):
         return self.scale_windows(_window_view(psi, self.window))
 
     def scale_windows(self, poses: Float[ArrayLike, "*batch d P"]) -> Float[Array, "*batch W"]:
-        """Model coordinates of windows of pose vectors: ``vec(ψ / γ)`` (pure JAX)."""
+        """Model coordinates of windows of pose vectors: ``vec(ψ_k / γ · τ_k)`` with ``τ_k = 1``
+        except ``τ_d = √(1 + w)`` for the newest (``w = recent_weight``; pure JAX)."""
         poses = jnp.asarray(poses)
         if poses.shape[-2:] != (self.window, self.pose_dim):
             raise ValueError(
                 f"scale_windows: expected (..., {self.window}, {self.pose_dim}), got {poses.shape}"
             )
         g = self.gamma.astype(poses.dtype)
-        return (poses / g).reshape(*poses.shape[:-2], self.window_dim)
+        tw = jnp.asarray(time_weights(self.window, self.recent_weight), poses.dtype)[:, None]
+        return (poses / g * tw).reshape(*poses.shape[:-2], self.window_dim)
 
     def coefficients(self, probes: Float[ArrayLike, "*batch W"]) -> Float[Array, "*batch b"]:
         """PCA coefficients ``c = Ũᵀ(Φ − Ψ̄)`` of probes in model coordinates."""

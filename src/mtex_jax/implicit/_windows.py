@@ -81,6 +81,14 @@ def velocity_channels(fm: FeatureMap) -> tuple[int, ...]:
     return tuple(i for i, name in enumerate(fm.active_names) if name.startswith("root.d"))
 
 
+def time_weights(window: int, recent_weight: float) -> np.ndarray:
+    """Per-pose-vector weights of a window, ``(d,)``: 1, except ``√(1 + w)`` for the newest,
+    so that squared distances weigh the current pose and velocity ``1 + w`` times."""
+    tw = np.ones(window)
+    tw[-1] = np.sqrt(1.0 + recent_weight)
+    return tw
+
+
 def _window_view(psi: np.ndarray, d: int) -> np.ndarray:
     """All ``(T' − d + 1, d, P)`` windows of consecutive rows (oldest first)."""
     v = np.lib.stride_tricks.sliding_window_view(psi, d, axis=0)  # (n, P, d)

@@ -8,6 +8,7 @@ from ._features import (
     raw_features as raw_features,
     unwrap_expmaps as unwrap_expmaps,
 )
+from ._feet import foot_joints as foot_joints
 from ._kinematics import (
     forward_kinematics as forward_kinematics,
     forward_kinematics_arrays as forward_kinematics_arrays,
@@ -44,6 +45,7 @@ __all__ = [
     "Skeleton",
     "concatenate_motions",
     "expmap_to_quat",
+    "foot_joints",
     "forward_kinematics",
     "forward_kinematics_arrays",
     "ground_axes",
