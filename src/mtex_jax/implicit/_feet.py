@@ -22,7 +22,7 @@ example's foot moves:
   frame ``t + 1`` (the two ``root.d…`` channels).
 
 With ``λ = 0``, strength 1 and one fully planted foot the generated foot moves exactly as the
-example's (``test_implicit_synthesis``).
+example's (``tests/test_implicit_feet.py``).
 """
 
 from __future__ import annotations
