@@ -41,7 +41,7 @@ VALID_HELD = ["60_09", "60_10", "60_11"]
 # of the training data seen through the same start windows and sample size)
 REPLAY = (
     "replay of training clips (reference):"
-    "velocity=0,blend=0,continuation=1000000,max_run=0,hubness=0,foot_lock=0"
+    "velocity=0,blend=0,continuation=1000000,max_run=0,hubness=0,foot_lock=0,seam_smoothing=0"
 )
 
 
@@ -204,9 +204,13 @@ def main() -> None:
         default=[
             "implicit tree sampler (defaults):",
             "implicit exact sampler (defaults):sampler=exact",
+            "tree, no seam smoothing:seam_smoothing=0",
+            "tree, the defaults before seam smoothing (lock smoothing 0.7):"
+            "seam_smoothing=0,lock_smoothing=0.7",
             "tree, no foot lock:foot_lock=0",
             "tree, window distance of the paper (recent_weight 0):recent_weight=0",
-            "tree, the defaults before (recent_weight 0, no foot lock):recent_weight=0,foot_lock=0",
+            "tree, no recent weight, foot lock or seam smoothing:"
+            "recent_weight=0,foot_lock=0,seam_smoothing=0",
             "implicit tree sampler, paper settings:",
             "implicit exact sampler, paper settings:sampler=exact",
             REPLAY,

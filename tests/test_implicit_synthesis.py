@@ -15,6 +15,7 @@ from hypothesis import given, settings, strategies as st
 
 import mtex_jax as mj
 from mtex_jax.implicit import ImplicitModel, SynthesisConfig, fade_weight, pose_vectors
+from mtex_jax.implicit._seams import seam_weights
 from mtex_jax.implicit._synthesis import synthesize_traced
 
 WINDOW = 6
@@ -51,6 +52,18 @@ def _lock(model: ImplicitModel, cfg: SynthesisConfig, prev, new, ex_prev, ex_new
     return new, delta
 
 
+def _smooth_seams(raw, before, seams, width, keep):
+    """``_seams``'s docstring frame by frame: the nearest seam by enumeration."""
+    out, at = raw.copy(), np.flatnonzero(seams)
+    for t in range(len(raw)):
+        m = max(0.0, 1.0 - np.min(np.abs(at - t)) / width) if at.size else 0.0
+        prev = raw[t - 1] if t > 0 else before
+        nxt = raw[t + 1] if t + 1 < len(raw) else raw[t]
+        out[t] = raw[t] + m * ((prev + 2 * raw[t] + nxt) / 4 - raw[t])
+        out[t, keep] = raw[t, keep]
+    return out
+
+
 def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.ndarray:
     """The generator of ``_synthesis``'s docstring in NumPy, for given example indices."""
     dim = model.feature_map.dim
@@ -60,9 +73,10 @@ def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.nd
     vel = np.zeros(dim, bool)
     vel[list(mj.implicit.velocity_channels(model.feature_map))] = True
     prev, cur, off, age, out = seed_y[-1], -1, np.zeros(dim), 0, []
-    delta = np.zeros(3)
+    delta, seams = np.zeros(3), []
     for i in idx:
         cont = cur >= 0 and i == cur + 1 and i < len(clip) and clip[i] == clip[cur]
+        seams.append(not cont)
         if not cont:
             off = prev - (y_next[i] - dy[i]) if cfg.velocity else np.zeros(dim)
             age = 0
@@ -81,7 +95,9 @@ def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.nd
         prev = new
         out.append(prev)
         cur = i
-    return np.asarray(out)
+    if cfg.seam_smoothing == 0:
+        return np.asarray(out)
+    return _smooth_seams(np.asarray(out), seed_y[-1], seams, cfg.seam_smoothing, vel)
 
 
 @pytest.mark.parametrize(
@@ -91,9 +107,9 @@ def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.nd
         SynthesisConfig(blend=0, continuation=1, max_run=0, candidates=1, leaf="weighted"),
         SynthesisConfig(blend=7, continuation=3, lookahead=3, leaf="uniform", candidates=4),
         SynthesisConfig(leaf_cap=2, candidates=3),
-        SynthesisConfig(root_blend=-1),
-        SynthesisConfig(blend=4, root_blend=0, continuation=3),
-        SynthesisConfig(foot_lock=0.0),
+        SynthesisConfig(root_blend=-1, seam_smoothing=4, continuation=2),
+        SynthesisConfig(blend=4, root_blend=0, continuation=3, seam_smoothing=1),
+        SynthesisConfig(foot_lock=0.0, seam_smoothing=0),
         SynthesisConfig(foot_lock=0.5, lock_smoothing=0.0, continuation=2),
         SynthesisConfig.paper(),
     ],
@@ -111,7 +127,7 @@ def test_poses_follow_the_numpy_rederivation(model, clips, cfg, sampler):
 def test_velocity_form_applies_the_examples_change_of_pose(model, clips):
     """Pure velocity form (blend 0): every generated frame moves by the example's own change
     of pose, ŷ_{t+1} − ŷ_t = Δy(e) (pose channels), even across transitions."""
-    cfg = SynthesisConfig(blend=0, continuation=1, max_run=0)
+    cfg = SynthesisConfig(blend=0, continuation=1, max_run=0, seam_smoothing=0)
     y, idx = model.synthesize_poses(jax.random.PRNGKey(5), clips[0], N, 1.0, config=cfg)
     y, idx = np.asarray(y), np.asarray(idx)
     dim = model.feature_map.dim
@@ -126,7 +142,9 @@ def test_velocity_form_applies_the_examples_change_of_pose(model, clips):
 def test_blending_rejoins_the_example_after_blend_frames(model, clips):
     """With blend B, B + 1 frames after a transition the pose is the example's own pose."""
     b = 3
-    cfg = SynthesisConfig(blend=b, continuation=8, lookahead=8, max_run=0, foot_lock=0.0)
+    cfg = SynthesisConfig(
+        blend=b, continuation=8, lookahead=8, max_run=0, foot_lock=0.0, seam_smoothing=0
+    )
     y, idx = model.synthesize_poses(jax.random.PRNGKey(2), clips[0], N, 1.0, config=cfg)
     y, idx = np.asarray(y)[WINDOW:], np.asarray(idx)
     dim = model.feature_map.dim
@@ -146,7 +164,13 @@ def test_root_blend_fades_the_root_velocity_on_its_own(model, clips):
     key = jax.random.PRNGKey(4)
     rb = 2
     cfg = SynthesisConfig(
-        blend=6, root_blend=rb, continuation=8, lookahead=8, max_run=0, foot_lock=0.0
+        blend=6,
+        root_blend=rb,
+        continuation=8,
+        lookahead=8,
+        max_run=0,
+        foot_lock=0.0,
+        seam_smoothing=0,
     )
     y, idx = model.synthesize_poses(key, clips[0], N, 1.0, config=cfg)
     y, idx = np.asarray(y)[WINDOW:], np.asarray(idx)
@@ -342,6 +366,43 @@ def test_fade_weight_is_a_smooth_step(blend, age):
         assert w == 0.0
 
 
+@settings(deadline=None, max_examples=40)
+@given(st.lists(st.booleans(), min_size=1, max_size=30), st.integers(1, 6))
+def test_seam_weights_against_enumeration(seams, width):
+    """m_t = max(0, 1 − |t − s(t)| / S) with s(t) the nearest seam, by enumeration."""
+    got = np.asarray(seam_weights(jnp.asarray(seams), width))
+    at = np.flatnonzero(seams)
+    want = [
+        max(0.0, 1.0 - np.min(np.abs(at - t)) / width) if at.size else 0.0
+        for t in range(len(seams))
+    ]
+    np.testing.assert_allclose(got, want, atol=1e-12)
+
+
+def test_seam_smoothing_lowers_the_jerk_at_transitions(model, clips):
+    """The same examples with and without seam smoothing: frames ≥ S from a seam are equal;
+    the mean squared third difference of the pose channels at the seams drops."""
+    key, n = jax.random.PRNGKey(8), 120
+    on = SynthesisConfig()
+    off = SynthesisConfig(seam_smoothing=0)
+    y1, i1 = model.synthesize_poses(key, clips[0], n, 1.0, config=on)
+    y0, i0 = model.synthesize_poses(key, clips[0], n, 1.0, config=off)
+    np.testing.assert_array_equal(np.asarray(i1), np.asarray(i0))
+    y1, y0, idx = np.asarray(y1)[WINDOW:], np.asarray(y0)[WINDOW:], np.asarray(i1)
+    seams = np.r_[True, idx[1:] != idx[:-1] + 1]
+    at = np.flatnonzero(seams)
+    far = np.array([np.min(np.abs(at - t)) >= on.seam_smoothing for t in range(n)])
+    np.testing.assert_array_equal(y1[far], y0[far])
+    pose = np.ones(y0.shape[1], bool)
+    pose[list(mj.implicit.velocity_channels(model.feature_map))] = False
+    j1 = np.diff(y1[:, pose], n=3, axis=0)
+    j0 = np.diff(y0[:, pose], n=3, axis=0)
+    near = np.zeros(n - 3, bool)
+    for s in at[(at >= 3) & (at < n - 3)]:
+        near[s - 3 : s + 1] = True  # third differences that span the seam
+    assert np.mean(j1[near] ** 2) < 0.7 * np.mean(j0[near] ** 2)
+
+
 def test_bad_options_raise_clear_errors(model, clips):
     key = jax.random.PRNGKey(0)
     bad: tuple[tuple[dict[str, Any], str], ...] = (
@@ -360,6 +421,9 @@ def test_bad_options_raise_clear_errors(model, clips):
         ({"velocity": 1}, "velocity"),
         ({"velocity": False, "blend": 3}, "blend"),
         ({"foot_lock": 1.5}, "foot_lock"),
+        ({"seam_smoothing": -1}, "seam_smoothing"),
+        ({"seam_smoothing": 1.5}, "seam_smoothing"),
+        ({"seam_smoothing": True}, "seam_smoothing"),
         ({"foot_lock": -0.1}, "foot_lock"),
         ({"foot_lock": True}, "foot_lock"),
         ({"lock_smoothing": 1.0}, "lock_smoothing"),
@@ -419,6 +483,8 @@ def test_cli_synthesis_options(tmp_path, capsys):
         "0",
         "--foot-lock",
         "0.5",
+        "--seam-smoothing",
+        "3",
     ]
     assert main(base + opts) == 0
     assert "wrote" in capsys.readouterr().out
@@ -433,6 +499,7 @@ def test_cli_synthesis_options(tmp_path, capsys):
         (["--hubness", "-1"], "hubness"),
         (["--root-blend", "-2"], "root-blend"),
         (["--foot-lock", "1.5"], "foot-lock"),
+        (["--seam-smoothing", "-1"], "seam-smoothing"),
         (["--recent-weight", "-1"], "recent-weight"),
     ):
         assert main(base + bad) == 2

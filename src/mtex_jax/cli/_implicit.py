@@ -113,7 +113,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 def _synthesis_config(args: argparse.Namespace):
     from ..implicit import SynthesisConfig
 
-    for name in ("blend", "lookahead", "max_run", "leaf_cap"):
+    for name in ("blend", "lookahead", "max_run", "leaf_cap", "seam_smoothing"):
         value = getattr(args, name)
         if value is not None and value < 0:
             raise ValueError(f"--{name.replace('_', '-')} must be ≥ 0, got {value}")
@@ -139,6 +139,7 @@ def _synthesis_config(args: argparse.Namespace):
         "hubness",
         "root_blend",
         "foot_lock",
+        "seam_smoothing",
     )
     opts = {f: getattr(base, f) for f in (*fields, "velocity")}
     opts |= {f: getattr(args, f) for f in fields if getattr(args, f) is not None}
@@ -335,6 +336,12 @@ def register(subparsers) -> None:
         default=None,
         help="strength in [0, 1] of the root correction that keeps planted feet in place "
         "(default 1; --paper: 0)",
+    )
+    s.add_argument(
+        "--seam-smoothing",
+        type=int,
+        default=None,
+        help="frames around each transition that are low-passed (default 2; 0 and --paper: off)",
     )
     s.add_argument(
         "--start", type=int, default=0, help="frame of the first clip that starts the seed window"
