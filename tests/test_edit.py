@@ -182,7 +182,11 @@ def test_no_recompile_for_the_same_shapes(tex, syn):
         assert float(out.position_error[0]) < 1e-3
 
 
-@pytest.mark.parametrize("solver", ["auto", "lm"])
+@pytest.mark.parametrize(
+    "solver",
+    # lm: the default run's budget (about 15 min); CI runs it after
+    ["auto", pytest.param("lm", marks=pytest.mark.slow)],
+)
 def test_edit_many_matches_single_edits(tex, syn, solver):
     """Both solvers; the Levenberg–Marquardt batch factorises its whitening one motion at a
     time under vmap (a batched one did not finish in minutes on the CPU backend)."""
