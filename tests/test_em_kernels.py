@@ -8,9 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from mtex_jax.texture import fit_texton, segment_scores, stack_textons
-from mtex_jax.texture._em import _rows_score
+from mtex_jax.texture._rows import _CHUNK_ROWS, _row_chunks, _rows_score
 from mtex_jax.texture._scores import _batch_scores_impl
 
 
@@ -54,11 +55,61 @@ def test_batch_scores_equal_per_sequence_scores(observation):
 @pytest.mark.parametrize("observation", ["paper", "residual", "full"])
 def test_rows_score_is_the_sum_of_own_texton_segment_scores(observation):
     tex, Y = _data(observation)
-    rows = np.array([[0, 0, 40, 1], [0, 40, 50, 2], [1, 3, 60, 0], [2, 50, 67, 1], [0, 0, 2, 0]])
-    w = np.array([1.0, 1.0, 1.0, 1.0, 0.0])  # the last row is padding (weight 0)
-    got = float(_rows_score(tex, jnp.asarray(Y), jnp.asarray(rows), jnp.asarray(w)))
+    # the fifth row's 70-frame slab would overrun the sequence: it starts 25 frames earlier
+    rows = np.array(
+        [[0, 0, 40, 1], [0, 40, 50, 2], [1, 3, 60, 0], [2, 50, 67, 1], [1, 95, 45, 2], [0, 0, 2, 0]]
+    )
+    w = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])  # the last row is padding (weight 0)
+    lab, grp = _row_chunks(rows[:, 3], 6)  # padded with empty chunks
+    chunks = (jnp.asarray(lab), jnp.asarray(grp))
+    got = float(_rows_score(tex, jnp.asarray(Y), jnp.asarray(rows), jnp.asarray(w), chunks, 70))
     want = 0.0
     for (s, b, n, i), wr in zip(rows, w, strict=True):
         if wr:
             want += float(segment_scores(tex, jnp.asarray(Y[s])).score(b, b + n - 1, i))
     np.testing.assert_allclose(got, want, rtol=1e-10)
+
+
+def test_rows_score_with_many_rows_per_texton():
+    """More rows per texton than one chunk holds, against the per-sequence scorer."""
+    tex, Y = _data("residual")
+    rng = np.random.default_rng(5)
+    n_rows = 40
+    s = rng.integers(0, 3, n_rows)
+    lengths = rng.integers(2, 61, n_rows)
+    T_s = np.array([90, 140, 117])[s]
+    starts = np.array([rng.integers(0, t - m + 1) for t, m in zip(T_s, lengths, strict=True)])
+    rows = np.stack([s, starts, lengths, rng.integers(0, 3, n_rows)], axis=1)
+    w = rng.uniform(0.5, 2.0, n_rows)
+    lab, grp = _row_chunks(rows[:, 3])
+    got = float(
+        _rows_score(
+            tex,
+            jnp.asarray(Y),
+            jnp.asarray(rows),
+            jnp.asarray(w),
+            (jnp.asarray(lab), jnp.asarray(grp)),
+            60,
+        )
+    )
+    want = sum(
+        wr * float(segment_scores(tex, jnp.asarray(Y[si])).score(b, b + n - 1, i))
+        for (si, b, n, i), wr in zip(rows, w, strict=True)
+    )
+    np.testing.assert_allclose(got, want, rtol=1e-10)
+
+
+@settings(deadline=None, max_examples=50)
+@given(st.lists(st.integers(0, 5), min_size=1, max_size=60), st.integers(0, 5))
+def test_row_chunks_hold_every_row_once_with_its_label(labels, extra):
+    labels = np.asarray(labels)
+    counts = np.bincount(labels)
+    n = int(np.sum(-(-counts // _CHUNK_ROWS)))
+    lab, grp = _row_chunks(labels, n + extra)
+    assert lab.shape == (n + extra,) and grp.shape == (n + extra, _CHUNK_ROWS)
+    seen = grp[grp >= 0]
+    np.testing.assert_array_equal(np.sort(seen), np.arange(len(labels)))
+    for c in range(n + extra):
+        rows = grp[c][grp[c] >= 0]
+        assert np.all(labels[rows] == lab[c])
+    assert np.all(grp[n:] == -1)

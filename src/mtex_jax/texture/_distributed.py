@@ -39,9 +39,9 @@ from ._em import _capacity, _em, _Runner, _transitions
 from ._fit import _SolveOptions, _texton_from_stats_impl
 from ._init import Segs, greedy_init
 from ._learn import (
-    _backward_bic,
     _bic_parts,
     _check_data,
+    _em_and_selection,
     _greedy_segments,
     _resolve_state_dim,
 )
@@ -306,7 +306,7 @@ class _DistRunner(_Runner):
         rows = np.zeros((cap, 4), dtype=np.int64)
         rows[:n] = local
         rows_j, valid = jnp.asarray(rows), jnp.asarray(np.arange(cap) < n)
-        n_tex = self._cap("textons", max(_capacity(n_textons), self.min_cap))
+        n_tex = self._cap("textons", max(_capacity(n_textons), self.min_cap, self.m_min_cap))
         assert self.config.state_dim is not None  # resolved before EM
         fs = _allreduce(_frame_pass(self.Y, rows_j, valid, n_tex, self.tmax))
         sub, ds = _dynamics_pass(
@@ -467,7 +467,6 @@ def learn_distributed(
             bics.append(b)
         return models[int(np.argmin(bics))]
     threshold = float(init["threshold"][0])
-    model = _em(run, fm, config, threshold, init["segs0"], verbose and root, callback, t0)
-    if config.selection == "bic":
-        model = _backward_bic(run, fm, config, model, verbose and root, callback)
-    return model
+    return _em_and_selection(
+        run, fm, config, threshold, init["segs0"], verbose and root, callback, t0
+    )

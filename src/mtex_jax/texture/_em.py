@@ -20,7 +20,7 @@ from ._durations import fit_durations
 from ._fit import _SolveOptions, _texton_from_stats_impl
 from ._init import Segs
 from ._model import MotionTexture
-from ._scores import _batch_scores_impl
+from ._rows import _CHUNK_ROWS, _row_chunks, _rows_score
 from ._segment import _segment_batch
 from ._stats import _dynamics_stats_impl, _frame_stats_impl, _subspace_impl
 from ._texton import Texton
@@ -90,35 +90,6 @@ def _fit_all_impl(
 
 
 _fit_all = eqx.filter_jit(_fit_all_impl)
-
-
-@eqx.filter_jit
-def _rows_score(tex: Texton, Y: Array, rows: Array, w: Array) -> Array:
-    """``Σ_r w_r score_{label_r}(start_r, end_r)`` over segment rows ``(seq, start, length,
-    label)`` of ``Y (S, T, D)``: the segments' scores read off the prefix sums of the frame
-    terms of every texton (:func:`_batch_scores_impl`, the E-step's kernel), two gathers per
-    row.
-
-    The frame terms cost ``O(S·T·N_t)`` GEMM work, a fraction of a second at the paper's
-    scale; scoring each segment separately by its own texton (a Cholesky factorisation and a
-    triangular solve per segment) was sequential and, with OpenBLAS threading its triangular
-    solves, 10–100× slower on a loaded 2-core machine."""
-    sc = _batch_scores_impl(tex, Y)
-    T = Y.shape[1]
-    seq, b, n, i = rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3]
-    e = jnp.clip(b + n - 1, 0, T - 1)
-    dyn = (
-        sc.cum_dyn[seq, i, e + 1]
-        - sc.cum_dyn[seq, i, jnp.minimum(b + 2, T)]
-        + (e - b - 1).astype(Y.dtype) * sc.dyn_offset[seq, i]
-    )
-    obs = (
-        sc.cum_obs[seq, i, e + 1]
-        - sc.cum_obs[seq, i, b]
-        + (e - b + 1).astype(Y.dtype) * sc.obs_offset[seq, i]
-    )
-    vals = sc.init[seq, i, b] + dyn + obs
-    return jnp.sum(jnp.where(w > 0, vals * w, 0.0))
 
 
 def _capacity(n: int) -> int:
@@ -233,6 +204,7 @@ class _Runner:
         # model selection visits every smaller texton count: stacks are padded to at least
         # this many textons there, so that each step reuses the compiled programs
         self.min_cap = 1
+        self.m_min_cap = 1  # the same for the M-step's stack
         self._caps: dict[str, int] = {}
 
     def _cap(self, name: str, want: int) -> int:
@@ -268,7 +240,7 @@ class _Runner:
             self.Y,
             jnp.asarray(rows),
             jnp.asarray(valid),
-            self._cap("textons", max(_capacity(n_textons), self.min_cap)),
+            self._cap("textons", max(_capacity(n_textons), self.min_cap, self.m_min_cap)),
             self.tmax,
             self.config.state_dim,
             float(self.config.sigma2_floor),
@@ -290,9 +262,13 @@ class _Runner:
         """Segment rows of the clips ``self.ys`` (numbered from 0) and each clip's score."""
         # only the real textons: the capacity padding of the M-step would double the work
         # (N_t changes rarely, so the extra compilations are few); up to _PAD_E_STEP textons
-        # the stack is padded to a power of two (model selection visits every small N_t)
+        # the stack is padded to a power of two (model selection visits every small N_t),
+        # beyond it to a multiple of _PAD_E_STEP
         n = M.shape[0]
-        cap = self._cap("e_step", max(_capacity(n), self.min_cap)) if n <= _PAD_E_STEP else n
+        if n <= _PAD_E_STEP:
+            cap = self._cap("e_step", max(_capacity(n), self.min_cap))
+        else:  # a multiple of _PAD_E_STEP: at most 1/(1 + n/16) more work, fewer programs
+            cap = -(-n // _PAD_E_STEP) * _PAD_E_STEP
         tex = jax.tree.map(lambda a: a[jnp.minimum(jnp.arange(cap), n - 1)], tex)
         log_M, log_pi = _padded_logs(M, pi, cap)
         if log_d is not None and cap > n:
@@ -351,8 +327,19 @@ class _Runner:
         rows[:n] = segs
         w = np.zeros(cap)
         w[:n] = 1.0
-        rows[:, 3] = np.minimum(rows[:, 3], M.shape[0] - 1)
-        return float(_rows_score(tex, self.Y, jnp.asarray(rows), jnp.asarray(w, self.Y.dtype)))
+        counts = np.bincount(segs[:, 3]) if n else np.zeros(1, np.int64)
+        n_chunks = int(np.sum(-(-counts // _CHUNK_ROWS)))
+        chunks = _row_chunks(segs[:, 3], self._cap("chunks", _capacity(max(n_chunks, 1))))
+        return float(
+            _rows_score(
+                tex,
+                self.Y,
+                jnp.asarray(rows),
+                jnp.asarray(w, self.Y.dtype),
+                (jnp.asarray(chunks[0]), jnp.asarray(chunks[1])),
+                self.tmax,
+            )
+        )
 
 
 def _em(

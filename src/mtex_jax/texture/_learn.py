@@ -23,7 +23,7 @@ import numpy as np
 
 from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
-from ._em import _em, _keep_textons, _Runner
+from ._em import _PAD_E_STEP, _capacity, _em, _keep_textons, _Runner
 from ._init import _feasible, greedy_init, threshold_for_textons
 from ._model import MotionTexture
 from ._segment import _check_lengths
@@ -111,12 +111,6 @@ def _resolve_state_dim(ys: list[np.ndarray], config: LearnConfig, verbose: bool)
     )
 
 
-# ---------------------------------------------------------------------------------------------
-# EM
-# ---------------------------------------------------------------------------------------------
-_PAD_E_STEP = 16
-
-
 def learn(
     data: Sequence[Motion] | Sequence[Any] | Motion,
     config: LearnConfig | None = None,
@@ -161,9 +155,34 @@ def learn(
         return models[best]
     t0 = time.perf_counter()
     threshold, segs = _greedy_segments(ys, config, verbose, t0)
-    model = _em(run, fm, config, threshold, segs, verbose, callback, t0)
-    if config.selection == "bic":
-        model = _backward_bic(run, fm, config, model, verbose, callback)
+    return _em_and_selection(run, fm, config, threshold, segs, verbose, callback, t0)
+
+
+def _em_and_selection(
+    run: _Runner,
+    fm: FeatureMap | None,
+    config: LearnConfig,
+    threshold: float,
+    segs: np.ndarray,
+    verbose: bool,
+    callback: Callable[[dict[str, Any]], None] | None,
+    t0: float,
+) -> MotionTexture:
+    """EM from the initial segments, then (``config.selection == "bic"``) the BIC selection.
+
+    With selection, the first EM runs at most 5 iterations: its many textons are only a
+    starting point, and each selection round refits for 5 more. EM then runs to convergence
+    (``config.max_iter``) on the selected textons, where an iteration is cheap."""
+    if config.selection != "bic":
+        return _em(run, fm, config, threshold, segs, verbose, callback, t0)
+    short = dataclasses.replace(config, max_iter=min(config.max_iter, 5))
+    model = _em(run, fm, short, threshold, segs, verbose, callback, t0)
+    model = _backward_bic(run, fm, config, model, verbose, callback)
+    if verbose:
+        print("[mtex learn] EM on the selected textons", flush=True)
+    # with the selection's padded sizes, so that no program is compiled again
+    model = _em(run, fm, config, threshold, np.asarray(model.segments), verbose, callback, t0)
+    run.min_cap = run.m_min_cap = 1
     return model
 
 
@@ -211,50 +230,63 @@ def _backward_bic(
     verbose: bool,
     callback: Callable[[dict[str, Any]], None] | None,
 ) -> MotionTexture:
-    """Backward elimination by BIC: drop the texton with the fewest segments and segment the
-    clips again by the others; if ``BIC = −2 log P(Y, H) + p log n`` of that segmentation under
-    the remaining textons (a lower bound of the log-likelihood after refitting) is lower, rerun
-    EM (at most 5 iterations) from it and continue, else stop."""
+    """Backward elimination by BIC, ``BIC = −2 log P(Y, H) + p log n``.
+
+    Each round drops the ``m`` textons with the fewest segments (ties: fewest frames) and
+    segments the clips again by the others. If the BIC of that segmentation under the
+    remaining textons (an upper bound of the BIC after refitting) is lower, EM is rerun from
+    it (at most 5 iterations); if the refitted model's BIC is lower too, it is accepted and
+    the next round drops ``m`` again (at most half the textons). Otherwise ``m`` is halved; the
+    selection stops when dropping a single texton does not lower the BIC. ``m`` starts at half
+    the textons, so
+    ``N_t`` textons are reduced to a few in ``O(log N_t)`` refits instead of ``N_t``, with the
+    same one-at-a-time stopping rule at the end.
+    """
     n = run.n_frames
     best, best_bic = model, _model_bic(model, n)
-    cap = 1 << max(0, (best.n_textons - 1).bit_length())
-    run.min_cap = cap if cap <= 16 else 1
+    # the M-step's stack keeps its size: its cost is in the rows, not the textons, and each
+    # smaller stack would compile the M-step and the objective again
+    run.m_min_cap = _capacity(best.n_textons)
     short = dataclasses.replace(config, max_iter=min(config.max_iter, 5))
+    m = max(1, best.n_textons // 2)
     while best.n_textons > 1:
         t0 = time.perf_counter()
+        # small E-steps padded to the current model's size: a rejected drop compiles nothing
+        cap = _capacity(best.n_textons)
+        run.min_cap = cap if cap <= _PAD_E_STEP else 1
+        m = min(m, max(1, best.n_textons // 2))
         segs = np.asarray(best.segments)
         counts = np.bincount(segs[:, 3], minlength=best.n_textons)
         frames = np.bincount(segs[:, 3], weights=segs[:, 2], minlength=best.n_textons)
-        drop = int(np.lexsort((frames, counts))[0])
-        keep = np.setdiff1d(np.arange(best.n_textons), [drop])
+        drop = np.lexsort((frames, counts))[:m]
+        keep = np.setdiff1d(np.arange(best.n_textons), drop)
         tex, M, pi = _keep_textons(best.textons, np.asarray(best.M), np.asarray(best.pi), keep)
         log_d = None if best.log_durations is None else np.asarray(best.log_durations)[keep]
         segs, score = run.e_step(tex, M, pi, log_d)
         cfg = best.config
         assert cfg.state_dim is not None
         p = n_params(len(keep), best.obs_dim, cfg.state_dim, cfg.observation, cfg.durations)
-        if -2 * score + p * math.log(n) >= best_bic:  # not even before refitting: stop
-            if verbose:
-                print(
-                    f"[mtex learn] BIC selection: keep {best.n_textons} textons "
-                    f"(BIC {best_bic:.6g}; without texton {drop}, before refitting: "
-                    f"{-2 * score + p * math.log(n):.6g})",
-                    flush=True,
-                )
-            break
-        cand = _em(run, fm, short, best.threshold, segs, False, callback, t0)
-        cand = dataclasses.replace(cand, config=config) if cand.config != config else cand
-        b = _model_bic(cand, n)
+        bound = -2 * score + p * math.log(n)
+        b, cand = bound, None
+        if bound < best_bic:  # refit only when it can pay
+            cand = _em(run, fm, short, best.threshold, segs, False, callback, t0)
+            cand = dataclasses.replace(cand, config=config) if cand.config != config else cand
+            b = _model_bic(cand, n)
         if verbose:
+            what = "before refitting" if bound >= best_bic else "refitted"
             print(
-                f"[mtex learn] BIC selection: {best.n_textons} textons {best_bic:.6g}, "
-                f"{cand.n_textons} textons {b:.6g}  {time.perf_counter() - t0:.1f} s",
+                f"[mtex learn] BIC selection: {best.n_textons} textons {best_bic:.6g}; "
+                f"without {m} ({what}) {b:.6g}  {time.perf_counter() - t0:.1f} s",
                 flush=True,
             )
-        if b >= best_bic:
+        if cand is not None and b < best_bic:
+            best, best_bic = cand, b
+        elif m == 1:
             break
-        best, best_bic = cand, b
-    run.min_cap = 1
+        else:
+            m //= 2
+    if verbose:
+        print(f"[mtex learn] BIC selection: keep {best.n_textons} textons", flush=True)
     return best
 
 
