@@ -11,6 +11,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from mtex_jax.texture import fit_texton, segment_scores, stack_textons
+from mtex_jax.texture._em import _ROW_CHUNK, _fit_all
+from mtex_jax.texture._fit import _SolveOptions
 from mtex_jax.texture._rows import _CHUNK_ROWS, _row_chunks, _rows_score
 from mtex_jax.texture._scores import _batch_scores_impl
 
@@ -113,3 +115,49 @@ def test_row_chunks_hold_every_row_once_with_its_label(labels, extra):
         rows = grp[c][grp[c] >= 0]
         assert np.all(labels[rows] == lab[c])
     assert np.all(grp[n:] == -1)
+
+
+@pytest.mark.parametrize("observation", ["paper", "full"])
+def test_chunked_m_step_equals_per_texton_fits(observation):
+    """The M-step's rows go _ROW_CHUNK at a time (40 rows: two chunks, the second padded,
+    plus invalid rows): each texton equals ``fit_texton`` on its own segments (a mask per
+    sequence), the independent per-texton path."""
+    rng = np.random.default_rng(11)
+    D = 5
+    k = D if observation == "full" else 2
+    S, T = 4, 400
+    Y = np.stack([_smooth(rng, T, D) for _ in range(S)])
+    rows = []
+    for s in range(S):  # consecutive segments of 6-14 frames, labels 0-2
+        b = 0
+        while b + 14 <= T and len(rows) < 36:
+            n = int(rng.integers(6, 15))
+            rows.append((s, b, n, int(rng.integers(0, 3))))
+            b += n
+    rows = np.asarray(rows)
+    n_real = len(rows)
+    cap = 40
+    padded = np.zeros((cap, 4), dtype=np.int64)
+    padded[:n_real] = rows
+    valid = np.arange(cap) < n_real
+    opts = _SolveOptions.make(1e-6, 1e-6, None, 4.0, observation, 1e-6)
+    got = _fit_all(jnp.asarray(Y), jnp.asarray(padded), jnp.asarray(valid), 3, 14, k, 1e-6, opts)
+    assert _ROW_CHUNK < n_real
+    for i in range(3):
+        mask = np.full((S, T), -1)
+        for r, (s, b, n, lab) in enumerate(rows):
+            if lab == i:
+                mask[s, b : b + n] = r
+        want = fit_texton(jnp.asarray(Y), jnp.asarray(mask), state_dim=k, observation=observation)
+        one = jax.tree.map(lambda a, i=i: a[i], got)
+        for name in ("mu", "A1", "A2", "d", "sigma2"):
+            np.testing.assert_allclose(
+                np.asarray(getattr(one, name)),
+                np.asarray(getattr(want, name)),
+                rtol=1e-7,
+                atol=1e-9,
+                err_msg=f"texton {i}: {name}",
+            )
+        # C is defined up to the signs of its columns
+        c_got, c_want = np.asarray(one.C), np.asarray(want.C)
+        np.testing.assert_allclose(np.abs(c_got.T @ c_want), np.eye(k), atol=1e-7)

@@ -5,12 +5,14 @@ from __future__ import annotations
 import itertools
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from dp_problems import compositions, small_textons
 from mtex_jax.texture import segment, segment_log_likelihood
+from mtex_jax.texture._segment import _segment_batch
 
 
 def brute_force(textons, log_M, log_pi, Y, tmin, tmax):
@@ -93,6 +95,17 @@ def test_batched_padded_sequences_equal_single_runs():
         assert batch[k].to_list() == single.to_list()
         np.testing.assert_allclose(float(batch[k].score), float(single.score), rtol=1e-9)
         assert sum(L for _, L, _ in batch[k].to_list()) == lens[k]
+    # the learner's E-step: clips in batches of 2 (the last batch padded), in sequence
+    log_d = np.log(rng.dirichlet(np.ones(6), size=2))
+    args = (tex, jnp.log(M), jnp.log(pi), jnp.asarray(pad), jnp.asarray(lens), 4, 9)
+    whole = _segment_batch(*args, jnp.asarray(log_d))
+    by_two = _segment_batch(*args, jnp.asarray(log_d), clip_batch=2)
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(by_two), strict=True):
+        assert a.shape == b.shape
+        if jnp.issubdtype(a.dtype, jnp.integer):  # the segmentations: equal
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        else:  # the scores: the frames are centred on each batch's mean, so to rounding
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9)
 
 
 def test_segment_input_checks_and_no_retrace():

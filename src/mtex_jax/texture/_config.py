@@ -54,10 +54,12 @@ class LearnConfig:
             ``"lognormal"`` (default: a discretised log-normal fitted in the M-step, mixed
             with 1 % of the flat one) or ``"flat"`` (the paper). With ``tmax=None`` the
             durations are flat.
-        selection: ``"bic"`` (default): after EM, textons are removed one at a time (the one
-            with the fewest segments; the clips segmented again and EM rerun) while that lowers
-            ``BIC = −2 log P(Y, H) + p log n``, so the number of textons is chosen by the
-            data; ``"none"``: keep EM's textons (the paper).
+        selection: ``"bic"`` (default): after (at most 5 iterations of) EM, the textons with
+            the fewest segments are removed (half of them at first, fewer when that does not
+            pay; the clips segmented again and EM rerun for at most 5 iterations) while that
+            lowers ``BIC = −2 log P(Y, H) + p log n``, until removing a single texton does not;
+            EM then runs to convergence on the textons kept. The number of textons is chosen
+            by the data. ``"none"``: keep EM's textons (the paper).
         min_segments: prune textons that the segmentation gives fewer training segments: after
             each E-step they are removed (``M``, ``π`` renormalised) and the clips segmented
             again by the remaining textons, which EM then refits (a texton fitted on one

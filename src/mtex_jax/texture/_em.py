@@ -56,6 +56,9 @@ def _masks(segs: Segs, n_seq: int, T: int) -> tuple[np.ndarray, np.ndarray]:
     return lab, sid
 
 
+_ROW_CHUNK = 32
+
+
 def _fit_all_impl(
     Y: Array, rows: Array, valid: Array, n_tex: int, width: int, k: int, floor: float, opts
 ) -> Texton:
@@ -64,28 +67,60 @@ def _fit_all_impl(
     Each segment (row ``(seq, start, length, label)``) is gathered into a ``(width, D)`` slab;
     pass-1 statistics are computed per segment and summed per texton (``segment_sum``), the
     subspaces solved, pass-2 statistics computed per segment in its texton's subspace and
-    summed again. The work is ``O(total frames)``, not ``O(N_t × frames)``.
+    summed again. The work is ``O(total frames)``, not ``O(N_t × frames)``. The rows go
+    ``_ROW_CHUNK`` at a time (``lax.scan``, sums accumulated), so that the per-segment slabs
+    and statistics of only one chunk are in memory (all rows at once took about 1 GB at 400
+    segments of 180 frames with ``k = D = 54``).
     """
     T = Y.shape[1]
     n = rows.shape[0]
-    seq, start, length, lab = rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3]
+    chunk = min(n, _ROW_CHUNK)
+    n_chunks = -(-n // chunk)
+    pad = n_chunks * chunk - n
+    rows = jnp.concatenate([rows, jnp.zeros((pad, 4), rows.dtype)]) if pad else rows
+    valid = jnp.concatenate([valid, jnp.zeros(pad, bool)]) if pad else valid
     off = jnp.arange(width)
-    inside = (off[None, :] < length[:, None]) & valid[:, None]
-    G = Y[seq[:, None], jnp.clip(start[:, None] + off[None, :], 0, T - 1)]  # (n, W, D)
-    ids = jnp.where(inside, jnp.arange(n)[:, None], -1)
-    bucket = jnp.where(valid, lab, n_tex)  # invalid rows go to a discarded bucket
+    rows_c = rows.reshape(n_chunks, chunk, 4)
+    valid_c = valid.reshape(n_chunks, chunk)
 
-    def per_texton(x: Array) -> Array:
-        return jax.ops.segment_sum(x, bucket, num_segments=n_tex + 1)[:n_tex]
+    def slabs(r: Array, v: Array) -> tuple[Array, Array, Array, Array]:
+        """One chunk's slabs ``(chunk, W, D)``, frame ids, label (clipped) and bucket."""
+        seq, start, length, lab = r[:, 0], r[:, 1], r[:, 2], r[:, 3]
+        inside = (off[None, :] < length[:, None]) & v[:, None]
+        G = Y[seq[:, None], jnp.clip(start[:, None] + off[None, :], 0, T - 1)]
+        ids = jnp.where(inside, jnp.arange(chunk)[:, None], -1)
+        bucket = jnp.where(v, lab, n_tex)  # invalid rows go to a discarded bucket
+        return G, ids, jnp.clip(lab, 0, n_tex - 1), bucket
 
-    fs = jax.tree.map(per_texton, jax.vmap(_frame_stats_impl)(G, ids))
+    def summed(per_chunk: Callable[[Array, Array, Array, Array], Any]) -> Any:
+        """``Σ`` over the chunks of the per-texton sums of ``per_chunk``'s per-row stats."""
+
+        def part(x: tuple[Array, Array]) -> Any:
+            G, ids, lab, bucket = slabs(*x)
+            stats = per_chunk(G, ids, lab, bucket)
+            return jax.tree.map(
+                lambda a: jax.ops.segment_sum(a, bucket, num_segments=n_tex + 1), stats
+            )
+
+        def body(acc: Any, x: tuple[Array, Array]) -> tuple[Any, None]:
+            return jax.tree.map(jnp.add, acc, part(x)), None
+
+        acc = part((rows_c[0], valid_c[0]))
+        if n_chunks > 1:
+            acc, _ = jax.lax.scan(body, acc, (rows_c[1:], valid_c[1:]))
+        return jax.tree.map(lambda a: a[:n_tex], acc)
+
+    fs = summed(lambda G, ids, lab, bucket: jax.vmap(_frame_stats_impl)(G, ids))
     # The eigen-decompositions and Cholesky factorisations run one texton at a time
     # (lax.map): batched LAPACK calls in jaxlib's CPU runtime split their batch over the
     # intra-op thread pool and two of them running concurrently can deadlock a 2-core pool.
     sub = jax.lax.map(lambda f: _subspace_impl(f, k, floor), fs)
-    sub_seg = jax.tree.map(lambda a: a[jnp.clip(lab, 0, n_tex - 1)], sub)
-    ds = jax.vmap(_dynamics_stats_impl)(G, ids, sub_seg)
-    ds = jax.tree.map(per_texton, ds)
+
+    def pass2(G: Array, ids: Array, lab: Array, bucket: Array) -> Any:
+        sub_seg = jax.tree.map(lambda a: a[lab], sub)
+        return jax.vmap(_dynamics_stats_impl)(G, ids, sub_seg)
+
+    ds = summed(pass2)
     return jax.lax.map(lambda a: _texton_from_stats_impl(a[0], a[1], opts), (sub, ds))
 
 
@@ -158,6 +193,7 @@ def _relabel(segs: Segs) -> tuple[Segs, np.ndarray]:
 # EM
 # ---------------------------------------------------------------------------------------------
 _PAD_E_STEP = 16
+_CLIP_BATCH = 4  # clips per batch of the E-step (memory: see _segment_batch)
 
 
 class _Runner:
@@ -282,6 +318,7 @@ class _Runner:
             self.config.tmin,
             self.tmax,
             None if log_d is None else jnp.asarray(log_d, self.Y.dtype),
+            _CLIP_BATCH if self.sharding is None else None,
         )
         starts = np.asarray(seg.starts)
         lengths = np.asarray(seg.lengths)
