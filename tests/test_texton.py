@@ -548,6 +548,21 @@ def test_frame_terms_time_blocks_cover_every_frame(T, block_size):
     assert_terms_equal_reference(ps, Y, dyn, obs)
 
 
+@pytest.mark.parametrize(("D", "k"), [(20, 20), (23, 18)])
+def test_frame_terms_beyond_the_unrolled_state_dimension(D, k):
+    """k > 16: the vectorised sums over the state index and the wider automatic time blocks,
+    against the scipy reference and against short blocks."""
+    rng = np.random.default_rng(21)
+    ps = [random_texton_np(rng, D, k) for _ in range(3)]
+    st = stack_textons([to_texton(p) for p in ps])
+    Y = rng.standard_normal((700, D)) * 0.3 + 0.5
+    dyn, obs = frame_terms(st, Y)
+    assert_terms_equal_reference(ps, Y, dyn, obs)
+    dyn7, obs7 = frame_terms(st, Y, block_size=7)
+    np.testing.assert_allclose(np.asarray(dyn7), np.asarray(dyn), rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(obs7), np.asarray(obs), rtol=1e-10, atol=1e-9)
+
+
 def test_frame_terms_ill_conditioned_q_and_k_equal_d():
     # B with singular values from 1e-3 to 1 (the whitened coordinates rescale by 1/s); then
     # textons with k = D (no residual dimensions: obs = 0)

@@ -32,6 +32,12 @@ from ._workers import _check_workers, _n_parts, run_row_blocks
 # Target size of one time block's projections (all textons), in bytes: small enough to stay in
 # the (per-core) L2 cache between the projection GEMM and the passes that re-read it.
 _BLOCK_BYTES = 2 * 2**20
+# The same for k > _UNROLL_MAX_K: the sums over the state index are then vectorised passes
+# over (N_t, k, block) arrays, and per-block overhead, not the cache, sets the pace. With
+# k = D = 54 on 49,708 frames (2 cores), segment scores of 32 / 64 / 305 textons took 2.04 /
+# 4.31 / 26.7 s with the 2 MiB blocks (142 / 62 / 14 frames) and 1.29 / 2.48 / 18.3 s with
+# blocks of 1022 / 510 / 126 frames, which this budget gives.
+_BLOCK_BYTES_WIDE = 16 * 2**20
 # Largest state dimension whose sums over the state index are unrolled in the kernel.
 _UNROLL_MAX_K = 16
 
@@ -40,13 +46,15 @@ def _block_frames(block_size: Any, textons: Texton, Y: Array) -> int:
     """Frames per time block of :func:`frame_terms` (``block_size=None``: from the cache size).
 
     The automatic choice keeps a block's ``(N_t·(k+1), block + 2)`` projections (in the
-    promoted dtype of ``Y`` and the stacked ``textons``) near ``_BLOCK_BYTES`` with
-    ``block + 2`` a multiple of 16 (GEMM-friendly), between 14 and 1022.
+    promoted dtype of ``Y`` and the stacked ``textons``) near ``_BLOCK_BYTES`` (for
+    ``k > _UNROLL_MAX_K``: ``_BLOCK_BYTES_WIDE``) with ``block + 2`` a multiple of 16
+    (GEMM-friendly), between 14 and 1022.
     """
     if block_size is None:
         itemsize = jnp.dtype(_float_dtype(Y, textons.mu)).itemsize
         n, k = textons.n_textons, textons.state_dim
-        cols = _BLOCK_BYTES // max(n * (k + 1) * itemsize, 1)
+        budget = _BLOCK_BYTES if k <= _UNROLL_MAX_K else _BLOCK_BYTES_WIDE
+        cols = budget // max(n * (k + 1) * itemsize, 1)
         return min(max(16 * (cols // 16), 16), 1024) - 2
     return _check_positive_int("block_size", block_size)
 
