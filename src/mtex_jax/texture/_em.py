@@ -56,7 +56,7 @@ def _masks(segs: Segs, n_seq: int, T: int) -> tuple[np.ndarray, np.ndarray]:
     return lab, sid
 
 
-_ROW_CHUNK = 32
+_M_STEP_ROWS = 32
 
 
 def _fit_all_impl(
@@ -68,13 +68,13 @@ def _fit_all_impl(
     pass-1 statistics are computed per segment and summed per texton (``segment_sum``), the
     subspaces solved, pass-2 statistics computed per segment in its texton's subspace and
     summed again. The work is ``O(total frames)``, not ``O(N_t × frames)``. The rows go
-    ``_ROW_CHUNK`` at a time (``lax.scan``, sums accumulated), so that the per-segment slabs
+    ``_M_STEP_ROWS`` at a time (``lax.scan``, sums accumulated), so that the per-segment slabs
     and statistics of only one chunk are in memory (all rows at once took about 1 GB at 400
     segments of 180 frames with ``k = D = 54``).
     """
     T = Y.shape[1]
     n = rows.shape[0]
-    chunk = min(n, _ROW_CHUNK)
+    chunk = min(n, _M_STEP_ROWS)
     n_chunks = -(-n // chunk)
     pad = n_chunks * chunk - n
     rows = jnp.concatenate([rows, jnp.zeros((pad, 4), rows.dtype)]) if pad else rows

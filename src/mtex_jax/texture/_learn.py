@@ -158,6 +158,11 @@ def learn(
     return _em_and_selection(run, fm, config, threshold, segs, verbose, callback, t0)
 
 
+def _refit_config(config: LearnConfig) -> LearnConfig:
+    """``config`` with at most 5 EM iterations: the EM runs of the BIC selection."""
+    return dataclasses.replace(config, max_iter=min(config.max_iter, 5))
+
+
 def _em_and_selection(
     run: _Runner,
     fm: FeatureMap | None,
@@ -175,7 +180,7 @@ def _em_and_selection(
     (``config.max_iter``) on the selected textons, where an iteration is cheap."""
     if config.selection != "bic":
         return _em(run, fm, config, threshold, segs, verbose, callback, t0)
-    short = dataclasses.replace(config, max_iter=min(config.max_iter, 5))
+    short = _refit_config(config)
     model = _em(run, fm, short, threshold, segs, verbose, callback, t0)
     model = _backward_bic(run, fm, config, model, verbose, callback)
     if verbose:
@@ -238,16 +243,15 @@ def _backward_bic(
     it (at most 5 iterations); if the refitted model's BIC is lower too, it is accepted and
     the next round drops ``m`` again (at most half the textons). Otherwise ``m`` is halved; the
     selection stops when dropping a single texton does not lower the BIC. ``m`` starts at half
-    the textons, so
-    ``N_t`` textons are reduced to a few in ``O(log N_t)`` refits instead of ``N_t``, with the
-    same one-at-a-time stopping rule at the end.
+    the textons, so ``N_t`` textons are reduced to a few in ``O(log N_t)`` refits instead of
+    ``N_t``, with the same one-at-a-time stopping rule at the end.
     """
     n = run.n_frames
     best, best_bic = model, _model_bic(model, n)
     # the M-step's stack keeps its size: its cost is in the rows, not the textons, and each
     # smaller stack would compile the M-step and the objective again
     run.m_min_cap = _capacity(best.n_textons)
-    short = dataclasses.replace(config, max_iter=min(config.max_iter, 5))
+    short = _refit_config(config)
     m = max(1, best.n_textons // 2)
     while best.n_textons > 1:
         t0 = time.perf_counter()
