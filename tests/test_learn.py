@@ -299,3 +299,58 @@ def test_min_segments_prunes_rarely_used_textons():
     for bad in (0, 1.5, True):
         with pytest.raises(ValueError, match="min_segments"):
             LearnConfig(min_segments=bad)
+
+
+def _learn_both_ways(monkeypatch, data, cfg):
+    """``learn`` with the greedy textons of too few segments dropped before the first E-step
+    (the default), and with them pruned only after it, as the E-step decides."""
+    from mtex_jax.texture import _learn
+
+    seen = []
+    em = _learn._em
+
+    def old_path(*args, prune_initial=False, **kwargs):
+        seen.append(prune_initial)
+        return em(*args, prune_initial=False, **kwargs)
+
+    new = learn(data, cfg)
+    monkeypatch.setattr(_learn, "_em", old_path)
+    old = learn(data, cfg)
+    assert any(seen)  # the greedy EM did ask for the early pruning
+    return new, old
+
+
+def _assert_same_texture(a, b):
+    np.testing.assert_array_equal(np.asarray(a.segments), np.asarray(b.segments))
+    for x, y in zip(jax_leaves(a), jax_leaves(b), strict=True):
+        np.testing.assert_allclose(np.asarray(x, float), np.asarray(y, float), rtol=1e-9, atol=1e-12)
+
+
+def jax_leaves(model):
+    import jax
+
+    return jax.tree.leaves(model)
+
+
+def test_pruning_the_greedy_textons_before_the_first_e_step_changes_nothing(monkeypatch):
+    # threshold 0.05 makes many greedy textons of one or two segments (see the test above)
+    rng = np.random.default_rng(3)
+    Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=30)
+    parts = [Y[: len(Y) // 2], Y[len(Y) // 2 :]]
+    paper = {**PAPER, "min_segments": 3}
+    cfg = LearnConfig(tmin=40, tmax=120, state_dim=4, threshold=0.05, max_iter=6, **paper)
+    from mtex_jax.texture._init import greedy_init
+
+    segs, n = greedy_init(parts, cfg, 0.05)
+    assert np.sum(np.bincount(segs[:, 3], minlength=n) < cfg.min_segments) >= 3
+    new, old = _learn_both_ways(monkeypatch, parts, cfg)
+    _assert_same_texture(new, old)
+
+
+@pytest.mark.slow
+def test_pruning_the_greedy_textons_early_changes_nothing_on_salsa(monkeypatch, cmu_motions):
+    # the default learn (BIC selection, k = D) on the 14 clips at 60 Hz: 155 greedy textons, of
+    # which 148 have fewer than 3 segments
+    cfg = LearnConfig(tmin=60, tmax=180, fps=60.0)
+    new, old = _learn_both_ways(monkeypatch, cmu_motions, cfg)
+    _assert_same_texture(new, old)

@@ -418,7 +418,9 @@ def _raw(m: Motion) -> Array:
     idx = np.minimum(np.arange(tp), t - 1)
     lp = None if m.local_positions is None else m.local_positions[idx]
     raw = _raw_jit(m.skeleton.up_axis, m.root_positions[idx], m.rotations[idx], lp)
-    return raw[:t]
+    # cut on the host and put back with device_put: an eager slice of a JAX array, and
+    # jnp.asarray of a NumPy array, compile once per clip length
+    return jax.device_put(np.asarray(raw)[:t])
 
 
 @eqx.filter_jit
@@ -427,10 +429,13 @@ def _raw_jit(up_axis: int, root_positions, rotations, local_positions) -> Array:
 
 
 def _scale(fm: FeatureMap, raw: Array) -> Array:
+    # elementwise on the host (the same IEEE operations): eager JAX ops here would compile
+    # once per clip length
+    r = np.asarray(raw)
     act = np.asarray(fm.active, dtype=np.int64)
-    off = jnp.asarray(fm.offset, raw.dtype)[act]
-    sc = jnp.asarray(fm.scale, raw.dtype)[act]
-    return (raw[:, act] - off) / sc
+    off = np.asarray(fm.offset, r.dtype)[act]
+    sc = np.asarray(fm.scale, r.dtype)[act]
+    return jax.device_put((r[:, act] - off) / sc)
 
 
 @eqx.filter_jit

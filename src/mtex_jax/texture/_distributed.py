@@ -455,7 +455,17 @@ def learn_distributed(
         models, bics = [], []
         for i, th in enumerate(config.bic_thresholds or ()):
             t1 = time.perf_counter()
-            model = _em(run, fm, config, float(th), init[f"segs{i}"], False, callback, t1)
+            model = _em(
+                run,
+                fm,
+                config,
+                float(th),
+                init[f"segs{i}"],
+                False,
+                callback,
+                t1,
+                prune_initial=True,
+            )
             ll, _, b = _bic_parts(model, n_frames)
             if verbose and root:
                 print(

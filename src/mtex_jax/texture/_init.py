@@ -105,10 +105,9 @@ def greedy_init(
     for s, y in enumerate(ys):
         T = y.shape[0]
         tmax = T if config.tmax is None else config.tmax
-        yj = jnp.asarray(y)
         b = 0
         while b < T:
-            win = yj[b : b + tmin]
+            win = jax.device_put(y[b : b + tmin])  # sliced on the host: no compile per length
             label = -1
             if bank.items:
                 err = np.asarray(_prediction_errors(bank.stacked(), win))[: len(bank.items)]
@@ -132,7 +131,7 @@ def greedy_init(
             hi = min(b + tmax, T)
             span = np.zeros((tmax, y.shape[1]), y.dtype)
             span[: hi - b] = y[b:hi]
-            e_t = np.asarray(_prediction_errors(bank.items[label], jnp.asarray(span)))[0]
+            e_t = np.asarray(_prediction_errors(bank.items[label], jax.device_put(span)))[0]
             e_t = e_t[: hi - b]
             # local error: mean over the last `smooth` frames (robust to a single noisy frame,
             # but sharp at a change of dynamics, unlike a running mean over the whole segment)

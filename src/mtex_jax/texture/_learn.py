@@ -179,9 +179,9 @@ def _em_and_selection(
     starting point, and each selection round refits for 5 more. EM then runs to convergence
     (``config.max_iter``) on the selected textons, where an iteration is cheap."""
     if config.selection != "bic":
-        return _em(run, fm, config, threshold, segs, verbose, callback, t0)
+        return _em(run, fm, config, threshold, segs, verbose, callback, t0, prune_initial=True)
     short = _refit_config(config)
-    model = _em(run, fm, short, threshold, segs, verbose, callback, t0)
+    model = _em(run, fm, short, threshold, segs, verbose, callback, t0, prune_initial=True)
     model = _backward_bic(run, fm, config, model, verbose, callback)
     if verbose:
         print("[mtex learn] EM on the selected textons", flush=True)
@@ -308,7 +308,7 @@ def _bic(
     for th in thresholds:
         t0 = time.perf_counter()
         segs, _ = greedy_init(run.ys, config, float(th))
-        model = _em(run, fm, config, float(th), segs, False, callback, t0)
+        model = _em(run, fm, config, float(th), segs, False, callback, t0, prune_initial=True)
         ll, p, bic = _bic_parts(model, n)
         row = {
             "threshold": float(th),

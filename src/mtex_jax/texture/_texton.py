@@ -50,6 +50,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 # --------------------------------------------------------------------------------------------
@@ -245,7 +246,15 @@ def stack_textons(textons: Sequence[Texton]) -> Texton:
                 f"stack_textons: element {j} has (D, k) = ({t.obs_dim}, {t.state_dim}), "
                 f"element 0 has ({first.obs_dim}, {first.state_dim})"
             )
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *textons)
+    return jax.tree.map(_stack_leaves, *textons)
+
+
+def _stack_leaves(*xs: Array) -> Array:
+    """``jnp.stack(xs)``; concrete leaves are stacked on the host (an eager ``jnp.stack``, or
+    ``jnp.asarray`` of a NumPy array, compiles once per number of textons)."""
+    if any(isinstance(x, jax.core.Tracer) for x in xs):
+        return jnp.stack(xs)
+    return jax.device_put(np.stack([np.asarray(x) for x in xs]))
 
 
 def companion_matrix(texton: Texton) -> Float[Array, "*batch k2 k2"]:
