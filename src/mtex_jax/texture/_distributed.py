@@ -35,9 +35,10 @@ from jaxtyping import Array
 
 from ..motion import FeatureMap, Motion, Skeleton
 from ._config import LearnConfig
-from ._em import _capacity, _em, _Runner, _transitions
+from ._em import _em, _Runner
 from ._fit import _SolveOptions, _texton_from_stats_impl
 from ._init import Segs, greedy_init
+from ._labels import _capacity, _transitions
 from ._learn import (
     _bic_parts,
     _check_data,
@@ -299,13 +300,18 @@ class _DistRunner(_Runner):
         rows[:, 0] -= self.offset
         return rows
 
-    def m_step(self, segs: Segs, n_textons: int) -> tuple[Texton, np.ndarray, np.ndarray]:
+    def m_step(
+        self, segs: Segs, n_textons: int, rows_valid: np.ndarray | None = None
+    ) -> tuple[Texton, np.ndarray, np.ndarray]:
         local = self._local_rows(segs)
         n = len(local)
         cap = self._cap("rows", _capacity(max(n, 1)))
         rows = np.zeros((cap, 4), dtype=np.int64)
         rows[:n] = local
-        rows_j, valid = jnp.asarray(rows), jnp.asarray(np.arange(cap) < n)
+        valid = np.arange(cap) < n
+        if rows_valid is not None:
+            valid[:n] &= rows_valid[self._mine(segs)]
+        rows_j, valid = jnp.asarray(rows), jnp.asarray(valid)
         n_tex = self._cap("textons", max(_capacity(n_textons), self.min_cap, self.m_min_cap))
         assert self.config.state_dim is not None  # resolved before EM
         fs = _allreduce(_frame_pass(self.Y, rows_j, valid, n_tex, self.tmax))

@@ -19,6 +19,14 @@ from ._config import LearnConfig
 from ._durations import fit_durations
 from ._fit import _SolveOptions, _texton_from_stats_impl
 from ._init import Segs
+from ._labels import (
+    _capacity,
+    _keep_textons,
+    _padded_logs,
+    _relabel,
+    _transitions,
+    _underused,
+)
 from ._model import MotionTexture
 from ._rows import _CHUNK_ROWS, _row_chunks, _rows_score
 from ._segment import _segment_batch
@@ -127,68 +135,6 @@ def _fit_all_impl(
 _fit_all = eqx.filter_jit(_fit_all_impl)
 
 
-def _capacity(n: int) -> int:
-    return 1 << max(0, (n - 1).bit_length())
-
-
-def _padded_logs(M: np.ndarray, pi: np.ndarray, cap: int) -> tuple[np.ndarray, np.ndarray]:
-    """log M and log π padded to ``cap`` textons with −inf (padding slots are never used)."""
-    n = M.shape[0]
-    with np.errstate(divide="ignore"):
-        log_M = np.full((cap, cap), -np.inf)
-        log_M[:n, :n] = np.log(M)
-        log_pi = np.full(cap, -np.inf)
-        log_pi[:n] = np.log(pi)
-    return log_M, log_pi
-
-
-def _transitions(segs: Segs, n_textons: int, alpha: float) -> tuple[np.ndarray, np.ndarray]:
-    counts = np.zeros((n_textons, n_textons))
-    first = np.zeros(n_textons)
-    prev_seq = -1
-    prev_label = -1
-    for s, _, _, i in segs:
-        if s != prev_seq:
-            first[i] += 1
-        else:
-            counts[prev_label, i] += 1
-        prev_seq, prev_label = s, i
-    M = (counts + alpha) / (counts + alpha).sum(axis=1, keepdims=True)
-    pi = (first + alpha) / (first + alpha).sum()
-    return M, pi
-
-
-def _underused(segs: Segs, min_segments: int) -> np.ndarray:
-    """Labels with fewer than ``min_segments`` segments (never all of them: the texton with
-    the most segments is kept)."""
-    labels, counts = np.unique(segs[:, 3], return_counts=True)
-    few = counts < min_segments
-    if few.all():
-        few[np.argmax(counts)] = False
-    return labels[few]
-
-
-def _keep_textons(
-    tex: Texton, M: np.ndarray, pi: np.ndarray, keep: np.ndarray
-) -> tuple[Texton, np.ndarray, np.ndarray]:
-    """The model restricted to textons ``keep`` (``M`` rows and ``π`` renormalised)."""
-    M = M[np.ix_(keep, keep)]
-    return (
-        jax.tree.map(lambda a: a[keep], tex),
-        M / M.sum(axis=1, keepdims=True),
-        pi[keep] / pi[keep].sum(),
-    )
-
-
-def _relabel(segs: Segs) -> tuple[Segs, np.ndarray]:
-    """Drop unused labels: returns new segments and the old label of each new label."""
-    used = np.unique(segs[:, 3])
-    remap = {int(o): n for n, o in enumerate(used)}
-    out = segs.copy()
-    out[:, 3] = [remap[int(i)] for i in segs[:, 3]]
-    return out, used
-
-
 # ---------------------------------------------------------------------------------------------
 # EM
 # ---------------------------------------------------------------------------------------------
@@ -263,14 +209,20 @@ class _Runner:
             return jnp.asarray(a)
         return jax.device_put(a, self.sharding)
 
-    def m_step(self, segs: Segs, n_textons: int) -> tuple[Texton, np.ndarray, np.ndarray]:
+    def m_step(
+        self, segs: Segs, n_textons: int, rows_valid: np.ndarray | None = None
+    ) -> tuple[Texton, np.ndarray, np.ndarray]:
         """Fit all textons; the stack is padded to a power of two (slots past ``n_textons``
-        are unused) so that a changing number of textons recompiles rarely."""
+        are unused) so that a changing number of textons recompiles rarely. ``rows_valid``
+        (``(len(segs),)`` bools): only those rows are fitted (the others keep their place, so
+        the padded row count, and with it the compiled program, stays)."""
         n = len(segs)
         cap = self._cap("rows", _capacity(n))
         rows = np.zeros((cap, 4), dtype=np.int64)
         rows[:n] = segs
         valid = np.arange(cap) < n
+        if rows_valid is not None:
+            valid[:n] &= rows_valid
         assert self.config.state_dim is not None  # resolved by learn before EM
         tex = _fit_all(
             self.Y,
@@ -379,6 +331,33 @@ class _Runner:
         )
 
 
+def _fit_kept(
+    run: _Runner, segs: Segs, n_t: int, few: np.ndarray
+) -> tuple[Texton, np.ndarray, np.ndarray, np.ndarray | None, float]:
+    """The model of ``segs`` without the textons ``few``: the others fitted to their own
+    segments (the same fits as with all textons), ``M``, ``π`` and durations restricted and
+    renormalised, and the objective of the kept textons' segments (scores and durations; a
+    partial segmentation has no transition term)."""
+    keep = np.setdiff1d(np.arange(n_t), few)
+    new_id = np.full(n_t, -1)
+    new_id[keep] = np.arange(keep.size)
+    ids = new_id[segs[:, 3]]
+    rows = segs.copy()
+    rows[:, 3] = np.maximum(ids, 0)
+    tex, _, _ = run.m_step(rows, keep.size, rows_valid=ids >= 0)
+    M, pi = _transitions(segs, n_t, run.config.pseudo_count)
+    M = M[np.ix_(keep, keep)]
+    M = M / M.sum(axis=1, keepdims=True)
+    pi = pi[keep] / pi[keep].sum()
+    log_d = run.durations(segs, n_t)
+    log_d = None if log_d is None else log_d[keep]
+    kept = rows[ids >= 0]
+    obj = run._segments_ll(tex, M, kept)
+    if log_d is not None:
+        obj += float(log_d[kept[:, 3], kept[:, 2] - run.config.tmin].sum())
+    return tex, M, pi, log_d, obj
+
+
 def _em(
     run: _Runner,
     fm: FeatureMap | None,
@@ -400,6 +379,8 @@ def _em(
     textons that survive the first E-step's pruning are exactly those with at least
     ``min_segments`` greedy segments, so this gives the same model without the E-step over all
     greedy textons (the costliest of the learn: 305 textons against 51 at 49,708 frames).
+    The dropped textons are not fitted either, so that iteration's M-step objective
+    (``history[0, 0]``) covers the kept textons' segments only (:func:`_fit_kept`).
     """
     n_frames = run.n_frames
     segs, _ = _relabel(segs)
@@ -408,15 +389,14 @@ def _em(
     for it in range(config.max_iter + 1):
         r = run
         n_t = int(segs[:, 3].max()) + 1
-        tex, M, pi = r.m_step(segs, n_t)
-        log_d = r.durations(segs, n_t)
-        obj_m = r.objective(tex, M, pi, segs, log_d)
         n_pruned = 0
         if prune_initial and it == 0 and (few := _underused(segs, config.min_segments)).size:
-            keep = np.setdiff1d(np.arange(n_t), few)
-            tex, M, pi = _keep_textons(tex, M, pi, keep)
-            log_d = None if log_d is None else log_d[keep]
+            tex, M, pi, log_d, obj_m = _fit_kept(r, segs, n_t, few)
             n_pruned = few.size
+        else:
+            tex, M, pi = r.m_step(segs, n_t)
+            log_d = r.durations(segs, n_t)
+            obj_m = r.objective(tex, M, pi, segs, log_d)
         new_segs, obj_e = r.e_step(tex, M, pi, log_d)
         # pruning: textons with fewer than min_segments segments are removed from the model
         # (M, π renormalised) and every clip is segmented again by the others, until none is

@@ -23,8 +23,9 @@ import numpy as np
 
 from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
-from ._em import _PAD_E_STEP, _capacity, _em, _keep_textons, _Runner
+from ._em import _PAD_E_STEP, _em, _Runner
 from ._init import _feasible, greedy_init, threshold_for_textons
+from ._labels import _capacity, _keep_textons
 from ._model import MotionTexture
 from ._segment import _check_lengths
 from ._select import choose_state_dim, n_params
