@@ -51,6 +51,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, Float
 
 # --------------------------------------------------------------------------------------------
@@ -252,7 +253,7 @@ def stack_textons(textons: Sequence[Texton]) -> Texton:
 def _stack_leaves(*xs: Array) -> Array:
     """``jnp.stack(xs)``; concrete leaves are stacked on the host (an eager ``jnp.stack``, or
     ``jnp.asarray`` of a NumPy array, compiles once per number of textons)."""
-    if any(isinstance(x, jax.core.Tracer) for x in xs):
+    if any(isinstance(x, Tracer) for x in xs):
         return jnp.stack(xs)
     return jax.device_put(np.stack([np.asarray(x) for x in xs]))
 
