@@ -12,6 +12,7 @@ import pytest
 
 from dp_problems import compositions, small_textons
 from mtex_jax.texture import segment, segment_log_likelihood
+from mtex_jax.texture._packing import pack_clips
 from mtex_jax.texture._segment import _segment_batch
 
 
@@ -95,17 +96,39 @@ def test_batched_padded_sequences_equal_single_runs():
         assert batch[k].to_list() == single.to_list()
         np.testing.assert_allclose(float(batch[k].score), float(single.score), rtol=1e-9)
         assert sum(L for _, L, _ in batch[k].to_list()) == lens[k]
-    # the learner's E-step: clips in batches of 2 (the last batch padded), in sequence
+    # the learner's E-step: clips packed (real frames only) in batches of 1, 2 (one empty
+    # slot) or 3, in sequence
     log_d = np.log(rng.dirichlet(np.ones(6), size=2))
     args = (tex, jnp.log(M), jnp.log(pi), jnp.asarray(pad), jnp.asarray(lens), 4, 9)
     whole = _segment_batch(*args, jnp.asarray(log_d))
-    by_two = _segment_batch(*args, jnp.asarray(log_d), clip_batch=2)
-    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(by_two), strict=True):
-        assert a.shape == b.shape
-        if jnp.issubdtype(a.dtype, jnp.integer):  # the segmentations: equal
-            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-        else:  # the scores: the frames are centred on each batch's mean, so to rounding
-            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9)
+    for c in (1, 2, 3):
+        packing = pack_clips(np.asarray(lens), 30, c)
+        packed = _segment_batch(*args, jnp.asarray(log_d), packing)
+        for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(packed), strict=True):
+            assert a.shape == b.shape
+            if jnp.issubdtype(a.dtype, jnp.integer):  # the segmentations: equal
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+            else:  # the scores: the frames are centred on each batch's mean, so to rounding
+                np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9)
+
+
+def test_pack_clips_balances_batches_and_keeps_every_frame():
+    rng = np.random.default_rng(7)
+    nf = rng.integers(40, 300, size=11)
+    T = int(nf.max())
+    p = pack_clips(nf, T, 4)
+    frames, where, n, order = (np.asarray(a) for a in (p.frames, p.where, p.n, p.order))
+    assert frames.shape[0] == 3 and where.shape == (3, 4, T) and frames.shape[1] % 16 == 0
+    assert sorted(order.tolist()) == sorted(set(order.tolist()))  # one slot per clip
+    for s, L in enumerate(nf):  # every real frame of every clip, in order, exactly once
+        b, j = divmod(int(order[s]), 4)
+        assert n[b, j] == L
+        np.testing.assert_array_equal(frames[b, where[b, j, :L]], s * T + np.arange(L))
+    totals = np.bincount(order // 4, weights=nf, minlength=3)
+    assert totals.max() - totals.min() <= nf.max()  # longest first into the lightest batch
+    assert frames.shape[1] < 4 * T
+    with pytest.raises(ValueError, match="pack_clips"):
+        pack_clips(np.array([10, 0]), 10, 2)
 
 
 def test_segment_input_checks_and_no_retrace():

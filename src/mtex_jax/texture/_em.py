@@ -28,6 +28,7 @@ from ._labels import (
     _underused,
 )
 from ._model import MotionTexture
+from ._packing import pack_clips
 from ._rows import _CHUNK_ROWS, _row_chunks, _rows_score
 from ._segment import _segment_batch
 from ._stats import _dynamics_stats_impl, _frame_stats_impl, _subspace_impl
@@ -173,6 +174,10 @@ class _Runner:
             self.sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seq"))
         self.Y = self._put(ypad)
         self.nf = self._put(nf)
+        # the E-step's clip batches, packed (real frames only); sharded data: all clips at once
+        self.packing = None
+        if self.sharding is None:
+            self.packing = pack_clips(np.asarray(nf)[: self.n_real], self.T, _CLIP_BATCH)
         self.opts = _SolveOptions.make(
             config.ridge,
             config.q_floor,
@@ -270,7 +275,7 @@ class _Runner:
             self.config.tmin,
             self.tmax,
             None if log_d is None else jnp.asarray(log_d, self.Y.dtype),
-            _CLIP_BATCH if self.sharding is None else None,
+            self.packing,
         )
         starts = np.asarray(seg.starts)
         lengths = np.asarray(seg.lengths)

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ._packing import _packed_scores_impl
 from ._scores import SegmentScorer, _batch_scores_impl, segment_scores
 from ._texton import Texton
 
@@ -326,30 +327,31 @@ def _check_durations(
 
 @eqx.filter_jit
 def _segment_batch(
-    textons, log_M, log_pi, Y, nf, tmin: int, tmax: int, log_durations=None, clip_batch=None
+    textons, log_M, log_pi, Y, nf, tmin: int, tmax: int, log_durations=None, packing=None
 ) -> Segmentation:
-    """Segmentations of the clips ``Y (S, T, D)``; ``clip_batch`` (static): the scores and the
-    DP of that many clips at a time, the batches in sequence (``lax.map``), so that memory
-    holds the ``(N_t, T)`` score arrays and the DP's per-block temporaries (``(tmin, N_t,
-    N_t)`` for the transitions, ``(tmin, tmax − tmin + 1, N_t)`` for the durations) of a few
-    clips only; ``None``: all clips at once (data sharded over devices along the clips)."""
+    """Segmentations of the clips ``Y (S, T, D)`` of ``nf (S,)`` frames.
+
+    ``packing`` (a :class:`~._packing.Packing` of ``nf``): the clips go in its batches of ``c``
+    clips, in sequence (``lax.map``), each batch's frame terms computed on its real frames
+    only (no padding), so that memory holds the ``(N_t, T)`` score arrays and the DP's
+    per-block temporaries (``(tmin, N_t, N_t)`` for the transitions, ``(tmin, tmax − tmin + 1,
+    N_t)`` for the durations) of ``c`` clips only. ``None``: all clips at once, laid end to end
+    with their padding (data sharded over devices along the clips)."""
     if not textons.is_stacked:
         textons = jax.tree.map(lambda a: a[None], textons)
 
     def one(sc, n):
         return viterbi_segments(sc, log_M, log_pi, n, tmin, tmax, log_durations)
 
-    def clips(args: tuple[Array, Array]) -> Segmentation:
-        return jax.vmap(one)(_batch_scores_impl(textons, args[0]), args[1])
+    if packing is None:
+        return jax.vmap(one)(_batch_scores_impl(textons, Y), nf)
+    S, T, D = Y.shape
+    Yflat = Y.reshape(S * T, D)
 
-    S = Y.shape[0]
-    if clip_batch is None or clip_batch >= S:
-        return clips((Y, nf))
-    n_b = -(-S // clip_batch)
-    fill = n_b * clip_batch - S  # padding clips: copies of the first, dropped afterwards
-    Yp = jnp.concatenate([Y, jnp.broadcast_to(Y[:1], (fill, *Y.shape[1:]))]) if fill else Y
-    nfp = jnp.concatenate([nf, jnp.broadcast_to(nf[:1], (fill,))]) if fill else nf
-    out = jax.lax.map(
-        clips, (Yp.reshape(n_b, clip_batch, *Y.shape[1:]), nfp.reshape(n_b, clip_batch))
-    )
-    return jax.tree.map(lambda a: a.reshape(n_b * clip_batch, *a.shape[2:])[:S], out)
+    def batch(args: tuple[Array, Array, Array]) -> Segmentation:
+        frames, where, n = args
+        n = n.astype(nf.dtype)
+        return jax.vmap(one)(_packed_scores_impl(textons, Yflat, frames, where, n), n)
+
+    out = jax.lax.map(batch, (packing.frames, packing.where, packing.n))
+    return jax.tree.map(lambda a: a.reshape(-1, *a.shape[2:])[packing.order], out)
