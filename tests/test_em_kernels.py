@@ -13,8 +13,10 @@ from hypothesis import given, settings, strategies as st
 from mtex_jax.texture import fit_texton, segment_scores, stack_textons
 from mtex_jax.texture._em import _M_STEP_ROWS, _fit_all
 from mtex_jax.texture._fit import _SolveOptions
+from mtex_jax.texture._packing import pack_clips
 from mtex_jax.texture._rows import _CHUNK_ROWS, _row_chunks, _rows_score
 from mtex_jax.texture._scores import _batch_scores_impl
+from mtex_jax.texture._segment import _segment_batch
 
 
 def _smooth(rng, T, D):
@@ -70,6 +72,40 @@ def test_rows_score_is_the_sum_of_own_texton_segment_scores(observation):
         if wr:
             want += float(segment_scores(tex, jnp.asarray(Y[s])).score(b, b + n - 1, i))
     np.testing.assert_allclose(got, want, rtol=1e-10)
+
+
+@pytest.mark.parametrize("observation", ["paper", "full"])
+@pytest.mark.parametrize("clip_batch", [None, 2])
+def test_e_step_scores_given_segments_from_its_own_segment_scores(observation, clip_batch):
+    # the M-step objective fused into the E-step: each clip's sum of the scores of given
+    # segments (each by its own texton), from the E-step's frame terms, unpacked or packed
+    tex, Y = _data(observation)
+    nf = np.array([90, 140, 117])
+    rows = [[(0, 40, 1), (40, 50, 2)], [(3, 60, 0), (95, 45, 2)], [(50, 67, 1)]]
+    K = 4
+    old = np.zeros((3, 3, K), dtype=np.int64)
+    for s, segs in enumerate(rows):
+        for j, (b, n, i) in enumerate(segs):
+            old[:, s, j] = (b, n, i)
+    M = np.full((3, 3), 1 / 3)
+    packing = None if clip_batch is None else pack_clips(nf, 140, clip_batch)
+    seg, got = _segment_batch(
+        tex,
+        jnp.log(M),
+        jnp.log(np.full(3, 1 / 3)),
+        jnp.asarray(Y),
+        jnp.asarray(nf),
+        20,
+        70,
+        None,
+        packing,
+        tuple(jnp.asarray(a) for a in old),
+    )
+    for s, segs in enumerate(rows):
+        sc = segment_scores(tex, jnp.asarray(Y[s, : nf[s]]))
+        want = sum(float(sc.score(b, b + n - 1, i)) for b, n, i in segs)
+        np.testing.assert_allclose(float(got[s]), want, rtol=1e-10)
+    assert np.all(np.asarray(seg.n_segments) > 0)
 
 
 def test_rows_score_with_many_rows_per_texton():

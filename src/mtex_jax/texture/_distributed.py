@@ -331,12 +331,33 @@ class _DistRunner(_Runner):
     def e_step(
         self, tex: Texton, M: np.ndarray, pi: np.ndarray, log_d: np.ndarray | None = None
     ) -> tuple[Segs, float]:
-        rows, scores = self._segment_clips(tex, M, pi, log_d)
+        rows, score, _ = self._gathered_e_step(tex, M, pi, log_d, None)
+        return rows, score
+
+    def e_step_scored(
+        self, tex: Texton, M: np.ndarray, pi: np.ndarray, log_d: np.ndarray | None, segs: Segs
+    ) -> tuple[Segs, float, float]:
+        return self._gathered_e_step(tex, M, pi, log_d, segs)
+
+    def _gathered_e_step(
+        self,
+        tex: Texton,
+        M: np.ndarray,
+        pi: np.ndarray,
+        log_d: np.ndarray | None,
+        segs: Segs | None,
+    ) -> tuple[Segs, float, float]:
+        """Every process's segmentations and scores (and its clips' sums of the scores of
+        ``segs``), gathered."""
+        local = None if segs is None else self._local_rows(segs)
+        rows, scores, old = self._segment_clips(tex, M, pi, log_d, local)
         rows[:, 0] += self.offset
-        parts = _allgather_arrays({"rows": rows, "scores": scores})
+        old = np.zeros(1) if old is None else old
+        parts = _allgather_arrays({"rows": rows, "scores": scores, "old": old})
         all_rows = np.concatenate([p["rows"] for p in parts]).astype(np.int64)
         all_scores = np.concatenate([p["scores"] for p in parts])
-        return all_rows.reshape(-1, 4), float(all_scores.sum())
+        old_sum = float(sum(float(p["old"].sum()) for p in parts))
+        return all_rows.reshape(-1, 4), float(all_scores.sum()), old_sum
 
     def _segments_ll(self, tex: Texton, M: np.ndarray, segs: Segs) -> float:
         mine = super()._segments_ll(tex, M, self._local_rows(segs))

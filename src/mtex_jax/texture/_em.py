@@ -246,13 +246,44 @@ class _Runner:
         self, tex: Texton, M: np.ndarray, pi: np.ndarray, log_d: np.ndarray | None = None
     ) -> tuple[Segs, float]:
         """The optimal segmentation of every clip and its total score."""
-        rows, scores = self._segment_clips(tex, M, pi, log_d)
+        rows, scores, _ = self._segment_clips(tex, M, pi, log_d)
         return rows, float(scores.sum())
 
+    def e_step_scored(
+        self, tex: Texton, M: np.ndarray, pi: np.ndarray, log_d: np.ndarray | None, segs: Segs
+    ) -> tuple[Segs, float, float]:
+        """:meth:`e_step`, and ``Σ`` of the scores of the segments ``segs`` (each by its own
+        texton), from the same frame terms: the M-step's objective without a pass of its own
+        (:meth:`objective` is the independent computation)."""
+        rows, scores, old = self._segment_clips(tex, M, pi, log_d, segs)
+        assert old is not None
+        return rows, float(scores.sum()), float(old.sum())
+
+    def _old_rows(self, segs: Segs) -> tuple[Array, Array, Array]:
+        """``segs`` (clips numbered from 0 in ``self.ys``) as ``(S, K)`` starts, lengths and
+        labels per clip (length 0: an empty slot), ``K = T // tmin``."""
+        K = max(self.T // self.config.tmin, 1)
+        out = np.zeros((3, self.n_seq, K), dtype=np.int64)
+        if len(segs):
+            order = np.lexsort((segs[:, 1], segs[:, 0]))
+            r = segs[order]
+            slot = np.arange(len(r)) - np.searchsorted(r[:, 0], r[:, 0])
+            out[0, r[:, 0], slot] = r[:, 1]
+            out[1, r[:, 0], slot] = r[:, 2]
+            out[2, r[:, 0], slot] = r[:, 3]
+        return tuple(self._put(a) for a in out)  # type: ignore[return-value]
+
     def _segment_clips(
-        self, tex: Texton, M: np.ndarray, pi: np.ndarray, log_d: np.ndarray | None
-    ) -> tuple[Segs, np.ndarray]:
-        """Segment rows of the clips ``self.ys`` (numbered from 0) and each clip's score."""
+        self,
+        tex: Texton,
+        M: np.ndarray,
+        pi: np.ndarray,
+        log_d: np.ndarray | None,
+        old: Segs | None = None,
+    ) -> tuple[Segs, np.ndarray, np.ndarray | None]:
+        """Segment rows of the clips ``self.ys`` (numbered from 0) and each clip's score;
+        with ``old`` (rows of those clips), each clip's sum of the scores of its ``old``
+        segments."""
         # only the real textons: the capacity padding of the M-step would double the work
         # (N_t changes rarely, so the extra compilations are few); up to _PAD_E_STEP textons
         # the stack is padded to a power of two (model selection visits every small N_t),
@@ -276,7 +307,10 @@ class _Runner:
             self.tmax,
             None if log_d is None else jnp.asarray(log_d, self.Y.dtype),
             self.packing,
+            None if old is None else self._old_rows(old),
         )
+        seg, old_j = seg
+        old_scores = None if old is None else np.asarray(old_j)[: len(self.ys)]
         starts = np.asarray(seg.starts)
         lengths = np.asarray(seg.lengths)
         labels = np.asarray(seg.labels)
@@ -287,7 +321,7 @@ class _Runner:
         for s in range(n_clips):
             for k in range(int(nseg[s])):
                 rows.append((s, int(starts[s, k]), int(lengths[s, k]), int(labels[s, k])))
-        return np.asarray(rows, dtype=np.int64).reshape(-1, 4), scores[:n_clips]
+        return np.asarray(rows, dtype=np.int64).reshape(-1, 4), scores[:n_clips], old_scores
 
     def key_poses(self, segs: Segs) -> np.ndarray:
         """The first two frames of every segment, ``(n_segments, 2, D)``."""
@@ -303,7 +337,13 @@ class _Runner:
     ) -> float:
         """log P(Y, segmentation | model): segment scores plus initial/transition (and
         duration) terms."""
-        total = self._segments_ll(tex, M, segs)
+        return self._segments_ll(tex, M, segs) + self.path_terms(M, pi, segs, log_d)
+
+    def path_terms(
+        self, M: np.ndarray, pi: np.ndarray, segs: Segs, log_d: np.ndarray | None
+    ) -> float:
+        """The initial, transition (and duration) log-probabilities of the segmentation."""
+        total = 0.0
         log_M, log_pi = np.log(M), np.log(pi)
         if log_d is not None:
             total += float(log_d[segs[:, 3], segs[:, 2] - self.config.tmin].sum())
@@ -338,11 +378,11 @@ class _Runner:
 
 def _fit_kept(
     run: _Runner, segs: Segs, n_t: int, few: np.ndarray
-) -> tuple[Texton, np.ndarray, np.ndarray, np.ndarray | None, float]:
+) -> tuple[Texton, np.ndarray, np.ndarray, np.ndarray | None, float, Segs, float]:
     """The model of ``segs`` without the textons ``few``: the others fitted to their own
     segments (the same fits as with all textons), ``M``, ``π`` and durations restricted and
-    renormalised, and the objective of the kept textons' segments (scores and durations; a
-    partial segmentation has no transition term)."""
+    renormalised; the objective of the kept textons' segments (scores and durations; a
+    partial segmentation has no transition term); and the E-step of that model."""
     keep = np.setdiff1d(np.arange(n_t), few)
     new_id = np.full(n_t, -1)
     new_id[keep] = np.arange(keep.size)
@@ -357,10 +397,10 @@ def _fit_kept(
     log_d = run.durations(segs, n_t)
     log_d = None if log_d is None else log_d[keep]
     kept = rows[ids >= 0]
-    obj = run._segments_ll(tex, M, kept)
+    new_segs, obj_e, obj = run.e_step_scored(tex, M, pi, log_d, kept)
     if log_d is not None:
         obj += float(log_d[kept[:, 3], kept[:, 2] - run.config.tmin].sum())
-    return tex, M, pi, log_d, obj
+    return tex, M, pi, log_d, obj, new_segs, obj_e
 
 
 def _em(
@@ -396,13 +436,13 @@ def _em(
         n_t = int(segs[:, 3].max()) + 1
         n_pruned = 0
         if prune_initial and it == 0 and (few := _underused(segs, config.min_segments)).size:
-            tex, M, pi, log_d, obj_m = _fit_kept(r, segs, n_t, few)
+            tex, M, pi, log_d, obj_m, new_segs, obj_e = _fit_kept(r, segs, n_t, few)
             n_pruned = few.size
         else:
             tex, M, pi = r.m_step(segs, n_t)
             log_d = r.durations(segs, n_t)
-            obj_m = r.objective(tex, M, pi, segs, log_d)
-        new_segs, obj_e = r.e_step(tex, M, pi, log_d)
+            new_segs, obj_e, obj_m = r.e_step_scored(tex, M, pi, log_d, segs)
+            obj_m += r.path_terms(M, pi, segs, log_d)
         # pruning: textons with fewer than min_segments segments are removed from the model
         # (M, π renormalised) and every clip is segmented again by the others, until none is
         # left; the model and segmentation stay complete and consistent

@@ -35,12 +35,14 @@ class Packing(eqx.Module):
             end).
         n: ``(n_b, c)`` frames of each slot's clip (an empty slot holds a stand-in of
             ``min(P, T)`` packed frames, whose segmentation is dropped).
+        clip: ``(n_b, c)`` clip of each slot (``−1``: empty).
         order: ``(S,)`` slot ``b·c + j`` of each clip.
     """
 
     frames: Int[Array, "nb P"]
     where: Int[Array, "nb c T"]
     n: Int[Array, "nb c"]
+    clip: Int[Array, "nb c"]
     order: Int[Array, " S"]
 
 
@@ -63,6 +65,7 @@ def pack_clips(n_frames: np.ndarray, T: int, clip_batch: int) -> Packing:
     frames = np.zeros((n_b, P), dtype=np.int64)
     where = np.zeros((n_b, c, T), dtype=np.int64)
     n = np.zeros((n_b, c), dtype=np.int64)
+    clip = np.full((n_b, c), -1, dtype=np.int64)
     order = np.zeros(S, dtype=np.int64)
     t = np.arange(T)
     for b, clips in enumerate(members):
@@ -72,6 +75,7 @@ def pack_clips(n_frames: np.ndarray, T: int, clip_batch: int) -> Packing:
             frames[b, pos : pos + L] = s * T + np.arange(L)
             where[b, j] = np.where(t < L, pos + t, 0)
             n[b, j] = L
+            clip[b, j] = s
             order[s] = b * c + j
             pos += L
         frames[b, pos:] = frames[b, 0]
@@ -83,6 +87,7 @@ def pack_clips(n_frames: np.ndarray, T: int, clip_batch: int) -> Packing:
         frames=jnp.asarray(frames, dtype=jnp.int32),
         where=jnp.asarray(where, dtype=jnp.int32),
         n=jnp.asarray(n, dtype=jnp.int32),
+        clip=jnp.asarray(clip, dtype=jnp.int32),
         order=jnp.asarray(order, dtype=jnp.int32),
     )
 

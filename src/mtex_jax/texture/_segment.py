@@ -301,7 +301,7 @@ def segment(
         raise ValueError(
             f"sequence {k} has {int(nf[k])} frames; need tmin = {tmin} <= n_frames <= T = {T}"
         )
-    return _segment_batch(textons, log_M, log_pi, Y, jnp.asarray(nf), tmin, tmax, log_d)
+    return _segment_batch(textons, log_M, log_pi, Y, jnp.asarray(nf), tmin, tmax, log_d)[0]
 
 
 def _check_durations(
@@ -327,9 +327,22 @@ def _check_durations(
 
 @eqx.filter_jit
 def _segment_batch(
-    textons, log_M, log_pi, Y, nf, tmin: int, tmax: int, log_durations=None, packing=None
-) -> Segmentation:
-    """Segmentations of the clips ``Y (S, T, D)`` of ``nf (S,)`` frames.
+    textons,
+    log_M,
+    log_pi,
+    Y,
+    nf,
+    tmin: int,
+    tmax: int,
+    log_durations=None,
+    packing=None,
+    old=None,
+) -> tuple[Segmentation, Array]:
+    """Segmentations of the clips ``Y (S, T, D)`` of ``nf (S,)`` frames, and ``(S,)`` sums of
+    the scores of the segments ``old`` from the same segment scores (0 without ``old``).
+
+    ``old``: ``(starts, lengths, labels)``, each ``(S, K)`` (length 0: no segment), segments
+    of the clips.
 
     ``packing`` (a :class:`~._packing.Packing` of ``nf``): the clips go in its batches of ``c``
     clips, in sequence (``lax.map``), each batch's frame terms computed on its real frames
@@ -343,15 +356,28 @@ def _segment_batch(
     def one(sc, n):
         return viterbi_segments(sc, log_M, log_pi, n, tmin, tmax, log_durations)
 
+    def old_sum(sc: SegmentScorer, st: Array, ln: Array, lb: Array) -> Array:
+        s = sc._score(st, st + ln - 1, lb)
+        return jnp.sum(jnp.where(ln > 0, s, 0.0))
+
     if packing is None:
-        return jax.vmap(one)(_batch_scores_impl(textons, Y), nf)
+        sc = _batch_scores_impl(textons, Y)
+        seg = jax.vmap(one)(sc, nf)
+        if old is None:
+            return seg, jnp.zeros(nf.shape, Y.dtype)
+        return seg, jax.vmap(old_sum)(sc, *old)
     S, T, D = Y.shape
     Yflat = Y.reshape(S * T, D)
 
-    def batch(args: tuple[Array, Array, Array]) -> Segmentation:
-        frames, where, n = args
+    def batch(args: tuple[Array, ...]) -> tuple[Segmentation, Array]:
+        frames, where, n, clip = args
         n = n.astype(nf.dtype)
-        return jax.vmap(one)(_packed_scores_impl(textons, Yflat, frames, where, n), n)
+        sc = _packed_scores_impl(textons, Yflat, frames, where, n)
+        seg = jax.vmap(one)(sc, n)
+        if old is None:
+            return seg, jnp.zeros(clip.shape, Y.dtype)
+        st, ln, lb = (a[jnp.maximum(clip, 0)] for a in old)
+        return seg, jax.vmap(old_sum)(sc, st, jnp.where(clip[:, None] >= 0, ln, 0), lb)
 
-    out = jax.lax.map(batch, (packing.frames, packing.where, packing.n))
+    out = jax.lax.map(batch, (packing.frames, packing.where, packing.n, packing.clip))
     return jax.tree.map(lambda a: a.reshape(-1, *a.shape[2:])[packing.order], out)
