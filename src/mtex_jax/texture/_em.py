@@ -24,6 +24,7 @@ from ._labels import (
     _keep_textons,
     _padded_logs,
     _relabel,
+    _take,
     _transitions,
     _underused,
 )
@@ -211,7 +212,7 @@ class _Runner:
 
     def _put(self, a: np.ndarray) -> Array:
         if self.sharding is None:
-            return jnp.asarray(a)
+            return jax.device_put(a)
         return jax.device_put(a, self.sharding)
 
     def m_step(
@@ -231,8 +232,8 @@ class _Runner:
         assert self.config.state_dim is not None  # resolved by learn before EM
         tex = _fit_all(
             self.Y,
-            jnp.asarray(rows),
-            jnp.asarray(valid),
+            jax.device_put(rows),
+            jax.device_put(valid),
             self._cap("textons", max(_capacity(n_textons), self.min_cap, self.m_min_cap)),
             self.tmax,
             self.config.state_dim,
@@ -293,7 +294,7 @@ class _Runner:
             cap = self._cap("e_step", max(_capacity(n), self.min_cap))
         else:  # a multiple of _PAD_E_STEP: at most 1/(1 + n/16) more work, fewer programs
             cap = -(-n // _PAD_E_STEP) * _PAD_E_STEP
-        tex = jax.tree.map(lambda a: a[jnp.minimum(jnp.arange(cap), n - 1)], tex)
+        tex = _take(tex, np.minimum(np.arange(cap), n - 1))
         log_M, log_pi = _padded_logs(M, pi, cap)
         if log_d is not None and cap > n:
             log_d = np.concatenate([log_d, np.zeros((cap - n, log_d.shape[1]))])
@@ -307,7 +308,7 @@ class _Runner:
             self.tmax,
             None if log_d is None else jnp.asarray(log_d, self.Y.dtype),
             self.packing,
-            None if old is None else self._old_rows(old),
+            self._old_rows(np.zeros((0, 4), np.int64) if old is None else old),
         )
         seg, old_j = seg
         old_scores = None if old is None else np.asarray(old_j)[: len(self.ys)]
@@ -486,7 +487,7 @@ def _em(
 
     assert best is not None
     _, tex, M, pi, final_segs, log_d = best
-    tex = jax.tree.map(lambda a: a[: M.shape[0]], tex)  # drop the capacity padding
+    tex = _take(tex, np.arange(M.shape[0]))  # drop the capacity padding
     used = np.unique(final_segs[:, 3])
     if len(used) < M.shape[0]:  # a texton that lost all its segments: remove it
         tex, M, pi = _keep_textons(tex, M, pi, used)
@@ -495,15 +496,15 @@ def _em(
     key = run.key_poses(final_segs)
     return MotionTexture(
         textons=tex,
-        M=jnp.asarray(M),
-        pi=jnp.asarray(pi),
-        key_poses=jnp.asarray(key),
-        key_pose_labels=jnp.asarray(final_segs[:, 3]),
-        segment_lengths=jnp.asarray(final_segs[:, 2]),
-        segments=jnp.asarray(final_segs),
-        history=jnp.asarray(np.asarray(history)),
+        M=jax.device_put(M),
+        pi=jax.device_put(pi),
+        key_poses=jax.device_put(key),
+        key_pose_labels=jax.device_put(final_segs[:, 3]),
+        segment_lengths=jax.device_put(final_segs[:, 2]),
+        segments=jax.device_put(final_segs),
+        history=jax.device_put(np.asarray(history)),
         feature_map=fm,
         config=config,
         threshold=threshold,
-        log_durations=None if log_d is None else jnp.asarray(log_d),
+        log_durations=None if log_d is None else jax.device_put(log_d),
     )

@@ -57,7 +57,7 @@ def _keep_textons(
     """The model restricted to textons ``keep`` (``M`` rows and ``π`` renormalised)."""
     M = M[np.ix_(keep, keep)]
     return (
-        jax.tree.map(lambda a: a[keep], tex),
+        _take(tex, keep),
         M / M.sum(axis=1, keepdims=True),
         pi[keep] / pi[keep].sum(),
     )
@@ -70,3 +70,9 @@ def _relabel(segs: Segs) -> tuple[Segs, np.ndarray]:
     out = segs.copy()
     out[:, 3] = [remap[int(i)] for i in segs[:, 3]]
     return out, used
+
+
+def _take(tex: Texton, idx: np.ndarray) -> Texton:
+    """``tex`` indexed by ``idx`` along the stack, on the host: an eager JAX gather compiles
+    once per pair of stack sizes, and EM visits many."""
+    return jax.tree.map(lambda a: jax.device_put(np.asarray(a)[idx]), tex)
