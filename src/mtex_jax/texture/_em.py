@@ -288,12 +288,12 @@ class _Runner:
         # only the real textons: the capacity padding of the M-step would double the work
         # (N_t changes rarely, so the extra compilations are few); up to _PAD_E_STEP textons
         # the stack is padded to a power of two (model selection visits every small N_t),
-        # beyond it to a multiple of _PAD_E_STEP
+        # beyond it to a multiple of 8
         n = M.shape[0]
         if n <= _PAD_E_STEP:
             cap = self._cap("e_step", max(_capacity(n), self.min_cap))
-        else:  # a multiple of _PAD_E_STEP: at most 1/(1 + n/16) more work, fewer programs
-            cap = -(-n // _PAD_E_STEP) * _PAD_E_STEP
+        else:  # a multiple of 8: at most 7 slots of extra work, fewer programs
+            cap = -(-n // 8) * 8
         tex = _take(tex, np.minimum(np.arange(cap), n - 1))
         log_M, log_pi = _padded_logs(M, pi, cap)
         if log_d is not None and cap > n:
