@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from mtex_jax.texture import fit_texton, segment_scores, stack_textons
-from mtex_jax.texture._em import _M_STEP_ROWS, _fit_all
+from mtex_jax.texture._em import _fit_all
 from mtex_jax.texture._fit import _SolveOptions
 from mtex_jax.texture._packing import pack_clips
 from mtex_jax.texture._rows import _CHUNK_ROWS, _row_chunks, _rows_score
@@ -155,9 +155,9 @@ def test_row_chunks_hold_every_row_once_with_its_label(labels, extra):
 
 @pytest.mark.parametrize("observation", ["paper", "full"])
 def test_chunked_m_step_equals_per_texton_fits(observation):
-    """The M-step's rows go _M_STEP_ROWS at a time (40 rows: two chunks, the second padded,
-    plus invalid rows): each texton equals ``fit_texton`` on its own segments (a mask per
-    sequence), the independent per-texton path."""
+    """The M-step's rows go in per-texton chunks of _CHUNK_ROWS (36 rows: several chunks per
+    texton, padding rows and empty chunks besides): each texton equals ``fit_texton`` on its
+    own segments (a mask per sequence), the independent per-texton path."""
     rng = np.random.default_rng(11)
     D = 5
     k = D if observation == "full" else 2
@@ -175,10 +175,11 @@ def test_chunked_m_step_equals_per_texton_fits(observation):
     cap = 40
     padded = np.zeros((cap, 4), dtype=np.int64)
     padded[:n_real] = rows
-    valid = np.arange(cap) < n_real
+    labels, groups = _row_chunks(rows[:, 3], 16)  # the real rows only, 16 chunks
+    assert np.bincount(labels[groups[:, 0] >= 0]).min() >= 2  # several chunks per texton
     opts = _SolveOptions.make(1e-6, 1e-6, None, 4.0, observation, 1e-6)
-    got = _fit_all(jnp.asarray(Y), jnp.asarray(padded), jnp.asarray(valid), 3, 14, k, 1e-6, opts)
-    assert _M_STEP_ROWS < n_real
+    chunks = (jnp.asarray(labels), jnp.asarray(groups))
+    got = _fit_all(jnp.asarray(Y), jnp.asarray(padded), chunks, 3, 14, k, 1e-6, opts)
     for i in range(3):
         mask = np.full((S, T), -1)
         for r, (s, b, n, lab) in enumerate(rows):

@@ -66,69 +66,68 @@ def _masks(segs: Segs, n_seq: int, T: int) -> tuple[np.ndarray, np.ndarray]:
     return lab, sid
 
 
-_M_STEP_ROWS = 32
-
-
 def _fit_all_impl(
-    Y: Array, rows: Array, valid: Array, n_tex: int, width: int, k: int, floor: float, opts
+    Y: Array,
+    rows: Array,
+    chunks: tuple[Array, Array],
+    n_tex: int,
+    width: int,
+    k: int,
+    floor: float,
+    opts,
 ) -> Texton:
-    """M-step: fit every texton on all of its segments (SPEC §2), from per-segment statistics.
+    """M-step: fit every texton on all of its segments (SPEC §2), from summed statistics.
 
-    Each segment (row ``(seq, start, length, label)``) is gathered into a ``(width, D)`` slab;
-    pass-1 statistics are computed per segment and summed per texton (``segment_sum``), the
-    subspaces solved, pass-2 statistics computed per segment in its texton's subspace and
-    summed again. The work is ``O(total frames)``, not ``O(N_t × frames)``. The rows go
-    ``_M_STEP_ROWS`` at a time (``lax.scan``, sums accumulated), so that the per-segment slabs
-    and statistics of only one chunk are in memory (all rows at once took about 1 GB at 400
-    segments of 180 frames with ``k = D = 54``).
+    ``rows`` are segments ``(seq, start, length, label)`` of ``Y (S, T, D)``; ``chunks =
+    (labels (C,), groups (C, G))`` groups them by texton (chunk ``c`` holds up to ``G`` row
+    indices of texton ``labels[c]``, ``-1``: none; :func:`~._rows._row_chunks`). A chunk's
+    segments are gathered into ``(width, D)`` slabs laid end to end (frame ids keep terms
+    from reaching across two slabs) and its pass-1 statistics come from one ``(D, G·width)``
+    GEMM; the subspaces are solved, then pass 2 of each chunk runs in its texton's subspace,
+    again one GEMM per statistic. The chunks go one after the other (``lax.scan``), their sums
+    added into their texton's: memory holds one chunk's slabs, and the work is
+    ``O(total frames)``, not ``O(N_t × frames)``. (Per-segment GEMMs batched over the
+    segments of mixed textons, the earlier scheme, ran at a fraction of the GEMM rate.)
     """
     T = Y.shape[1]
-    n = rows.shape[0]
-    chunk = min(n, _M_STEP_ROWS)
-    n_chunks = -(-n // chunk)
-    pad = n_chunks * chunk - n
-    rows = jnp.concatenate([rows, jnp.zeros((pad, 4), rows.dtype)]) if pad else rows
-    valid = jnp.concatenate([valid, jnp.zeros(pad, bool)]) if pad else valid
+    D = Y.shape[2]
+    labels, groups = chunks
+    G = groups.shape[1]
     off = jnp.arange(width)
-    rows_c = rows.reshape(n_chunks, chunk, 4)
-    valid_c = valid.reshape(n_chunks, chunk)
 
-    def slabs(r: Array, v: Array) -> tuple[Array, Array, Array, Array]:
-        """One chunk's slabs ``(chunk, W, D)``, frame ids, label (clipped) and bucket."""
-        seq, start, length, lab = r[:, 0], r[:, 1], r[:, 2], r[:, 3]
-        inside = (off[None, :] < length[:, None]) & v[:, None]
-        G = Y[seq[:, None], jnp.clip(start[:, None] + off[None, :], 0, T - 1)]
-        ids = jnp.where(inside, jnp.arange(chunk)[:, None], -1)
-        bucket = jnp.where(v, lab, n_tex)  # invalid rows go to a discarded bucket
-        return G, ids, jnp.clip(lab, 0, n_tex - 1), bucket
+    def slab(g: Array) -> tuple[Array, Array]:
+        """A chunk's slabs end to end ``(G·width, D)`` and their frame ids (``-1``: unused)."""
+        r = rows[jnp.maximum(g, 0)]
+        seq, start, length = r[:, 0], r[:, 1], r[:, 2]
+        inside = (off[None, :] < length[:, None]) & (g >= 0)[:, None]
+        frames = Y[seq[:, None], jnp.clip(start[:, None] + off[None, :], 0, T - 1)]
+        ids = jnp.where(inside, jnp.arange(G)[:, None], -1)
+        return frames.reshape(G * width, D), ids.reshape(G * width)
 
-    def summed(per_chunk: Callable[[Array, Array, Array, Array], Any]) -> Any:
-        """``Σ`` over the chunks of the per-texton sums of ``per_chunk``'s per-row stats."""
-
-        def part(x: tuple[Array, Array]) -> Any:
-            G, ids, lab, bucket = slabs(*x)
-            stats = per_chunk(G, ids, lab, bucket)
-            return jax.tree.map(
-                lambda a: jax.ops.segment_sum(a, bucket, num_segments=n_tex + 1), stats
-            )
+    def summed(stats: Callable[[Array, Array], Any]) -> Any:
+        """``Σ`` of ``stats(texton, row group)`` over the chunks, per texton."""
+        shapes = jax.eval_shape(stats, labels[0], groups[0])
+        acc0 = jax.tree.map(lambda a: jnp.zeros((n_tex, *a.shape), a.dtype), shapes)
+        none = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
 
         def body(acc: Any, x: tuple[Array, Array]) -> tuple[Any, None]:
-            return jax.tree.map(jnp.add, acc, part(x)), None
+            # the padding chunks (no rows) are skipped, not computed on zeros
+            part = jax.lax.cond(x[1][0] >= 0, lambda: stats(*x), lambda: none)
+            return jax.tree.map(lambda a, b: a.at[x[0]].add(b), acc, part), None
 
-        acc = part((rows_c[0], valid_c[0]))
-        if n_chunks > 1:
-            acc, _ = jax.lax.scan(body, acc, (rows_c[1:], valid_c[1:]))
-        return jax.tree.map(lambda a: a[:n_tex], acc)
+        acc, _ = jax.lax.scan(body, acc0, (labels, groups))
+        return acc
 
-    fs = summed(lambda G, ids, lab, bucket: jax.vmap(_frame_stats_impl)(G, ids))
+    fs = summed(lambda i, g: _frame_stats_impl(*slab(g)))
     # The eigen-decompositions and Cholesky factorisations run one texton at a time
     # (lax.map): batched LAPACK calls in jaxlib's CPU runtime split their batch over the
     # intra-op thread pool and two of them running concurrently can deadlock a 2-core pool.
     sub = jax.lax.map(lambda f: _subspace_impl(f, k, floor), fs)
 
-    def pass2(G: Array, ids: Array, lab: Array, bucket: Array) -> Any:
-        sub_seg = jax.tree.map(lambda a: a[lab], sub)
-        return jax.vmap(_dynamics_stats_impl)(G, ids, sub_seg)
+    def pass2(i: Array, g: Array) -> Any:
+        frames, ids = slab(g)
+        # one segment starts per slab
+        return _dynamics_stats_impl(frames, ids, jax.tree.map(lambda a: a[i], sub), G)
 
     ds = summed(pass2)
     return jax.lax.map(lambda a: _texton_from_stats_impl(a[0], a[1], opts), (sub, ds))
@@ -226,14 +225,12 @@ class _Runner:
         cap = self._cap("rows", _capacity(n))
         rows = np.zeros((cap, 4), dtype=np.int64)
         rows[:n] = segs
-        valid = np.arange(cap) < n
-        if rows_valid is not None:
-            valid[:n] &= rows_valid
+        chunks = self._m_chunks(segs, rows_valid)
         assert self.config.state_dim is not None  # resolved by learn before EM
         tex = _fit_all(
             self.Y,
             jax.device_put(rows),
-            jax.device_put(valid),
+            chunks,
             self._cap("textons", max(_capacity(n_textons), self.min_cap, self.m_min_cap)),
             self.tmax,
             self.config.state_dim,
@@ -242,6 +239,17 @@ class _Runner:
         )
         M, pi = _transitions(segs, n_textons, self.config.pseudo_count)
         return tex, M, pi
+
+    def _m_chunks(self, segs: Segs, rows_valid: np.ndarray | None) -> tuple[Array, Array]:
+        """The rows of ``segs`` (those of ``rows_valid``) in per-texton chunks of
+        ``_CHUNK_ROWS`` (:func:`_row_chunks`), padded to a bucketed number of chunks."""
+        idx = np.arange(len(segs)) if rows_valid is None else np.flatnonzero(rows_valid)
+        lab = segs[idx, 3]
+        counts = np.bincount(lab) if len(lab) else np.zeros(1, np.int64)
+        n_chunks = int(np.sum(-(-counts // _CHUNK_ROWS)))
+        labels, groups = _row_chunks(lab, self._cap("m_chunks", _capacity(max(n_chunks, 1))))
+        groups = np.where(groups >= 0, idx[np.maximum(groups, 0)], -1)
+        return jax.device_put(labels), jax.device_put(groups)
 
     def e_step(
         self, tex: Texton, M: np.ndarray, pi: np.ndarray, log_d: np.ndarray | None = None

@@ -246,11 +246,19 @@ def _valid_terms(ids: Int[Array, " T"]) -> tuple[Array, Array, Array]:
     return pair, triple, start
 
 
-def _dynamics_stats_seq(Y: Array, ids: Array, mu: Array, C: Array) -> DynamicsStats:
+def _dynamics_stats_seq(
+    Y: Array, ids: Array, mu: Array, C: Array, max_starts: int | None = None
+) -> DynamicsStats:
+    """Pass-2 sums of one sequence. The pair sums follow from the triple and start sums: the
+    pairs ``(t−1, t)`` of a segment ``[b, e]`` are its triples' (``t >= b + 2``) and its start
+    pair ``(b, b+1)``, so ``Σ p pᵀ = R (Σ z zᵀ)[:2k, :2k] Rᵀ + Σ s sᵀ`` with ``R`` swapping the
+    two ``k``-blocks (one ``(2k)²`` GEMM over the frames fewer). ``max_starts`` (static): at
+    most that many segments start in ``Y``; the start sums then use only those rows (another
+    GEMM over the frames fewer)."""
     T = Y.shape[0]
     k = C.shape[1]
     dtype = Y.dtype
-    pair, triple, start = _valid_terms(ids)
+    _, triple, start = _valid_terms(ids)
     used = (ids >= 0)[:, None]
     U = jnp.where(used, Y - mu, 0.0)
     X = U @ C
@@ -269,12 +277,21 @@ def _dynamics_stats_seq(Y: Array, ids: Array, mu: Array, C: Array) -> DynamicsSt
         sum_uu = jnp.zeros((3, 3), dtype)
     if T >= 2:
         P = jnp.concatenate([X[:-1], X[1:]], axis=1)  # [x_{t-1}; x_t] for t = 1..T-1
-        w2 = pair[1:].astype(dtype)
-        Pw = P * w2[:, None]
         ws = start[:-1].astype(dtype)  # s_b = [x_b; x_{b+1}] for b = 0..T-2
-        Sw = P * ws[:, None]
-        n2, sum_p, sum_pp = jnp.sum(w2), jnp.sum(Pw, 0), Pw.T @ P
-        n_s, sum_s, sum_ss = jnp.sum(ws), jnp.sum(Sw, 0), Sw.T @ P
+        if max_starts is not None and max_starts < T - 1:
+            (b,) = jnp.nonzero(start[:-1], size=max_starts, fill_value=0)
+            Ps, wsb = P[b], ws[b] * (jnp.arange(max_starts) < jnp.sum(start[:-1]))
+        else:
+            Ps, wsb = P, ws
+        Sw = Ps * wsb[:, None]
+        n_s, sum_s, sum_ss = jnp.sum(wsb), jnp.sum(Sw, 0), Sw.T @ Ps
+        if T >= 3:  # the pairs: the triples' last two frames (swapped) and the starts
+            swap = jnp.concatenate([jnp.arange(k, 2 * k), jnp.arange(k)])
+            n2 = n3 + n_s
+            sum_p = sum_z[: 2 * k][swap] + sum_s
+            sum_pp = sum_zz[: 2 * k, : 2 * k][swap][:, swap] + sum_ss
+        else:
+            n2, sum_p, sum_pp = n_s, sum_s, sum_ss
     else:
         n2, sum_p, sum_pp = zero, jnp.zeros((2 * k,), dtype), jnp.zeros((2 * k, 2 * k), dtype)
         n_s, sum_s, sum_ss = n2, sum_p, sum_pp
@@ -292,12 +309,14 @@ def _dynamics_stats_seq(Y: Array, ids: Array, mu: Array, C: Array) -> DynamicsSt
     )
 
 
-def _dynamics_stats_impl(Y: Array, mask: Array, subspace: Subspace) -> DynamicsStats:
+def _dynamics_stats_impl(
+    Y: Array, mask: Array, subspace: Subspace, max_starts: int | None = None
+) -> DynamicsStats:
     Y = _error_if_nonfinite(Y, "Y")
     mu = subspace.mu.astype(Y.dtype)
     C = subspace.C.astype(Y.dtype)
     if Y.ndim == 2:
-        return _dynamics_stats_seq(Y, mask, mu, C)
+        return _dynamics_stats_seq(Y, mask, mu, C, max_starts)
     per_seq = jax.vmap(_dynamics_stats_seq, in_axes=(0, 0, None, None))(Y, mask, mu, C)
     return jax.tree.map(lambda x: jnp.sum(x, axis=0), per_seq)
 
