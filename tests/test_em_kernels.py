@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from mtex_jax.texture import fit_texton, segment_scores, stack_textons
-from mtex_jax.texture._em import _fit_all
 from mtex_jax.texture._fit import _SolveOptions
+from mtex_jax.texture._mstep import _fit_all
 from mtex_jax.texture._packing import pack_clips
 from mtex_jax.texture._rows import _CHUNK_ROWS, _row_chunks, _rows_score
 from mtex_jax.texture._scores import _batch_scores_impl

@@ -26,17 +26,14 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
-from jaxtyping import Array
 
 from ..motion import FeatureMap, Motion, Skeleton
 from ._config import LearnConfig
 from ._em import _em, _Runner
-from ._fit import _SolveOptions, _texton_from_stats_impl
 from ._init import Segs, greedy_init
 from ._labels import _capacity, _transitions
 from ._learn import (
@@ -47,15 +44,8 @@ from ._learn import (
     _resolve_state_dim,
 )
 from ._model import MotionTexture
+from ._mstep import _dynamics_pass, _frame_pass, _solve
 from ._segment import _check_lengths
-from ._stats import (
-    DynamicsStats,
-    FrameStats,
-    Subspace,
-    _dynamics_stats_impl,
-    _frame_stats_impl,
-    _subspace_impl,
-)
 from ._texton import Texton
 
 __all__ = ["learn_distributed"]
@@ -218,55 +208,6 @@ def _exchange_clips(data: Any, config: LearnConfig) -> tuple[list[Any], list[int
             )
     clips = [_clips_of(part) for part in parts]
     return [c for cs in clips for c in cs], [len(cs) for cs in clips]
-
-
-# ---------------------------------------------------------------------------------------------
-# The M-step in two collective passes
-# ---------------------------------------------------------------------------------------------
-def _slabs(Y: Array, rows: Array, valid: Array, width: int) -> tuple[Array, Array]:
-    """Every segment row ``(seq, start, length, label)`` gathered into a ``(width, D)`` slab,
-    with the per-frame segment ids (``-1`` outside the segment)."""
-    T = Y.shape[1]
-    start, length = rows[:, 1], rows[:, 2]
-    off = jnp.arange(width)
-    inside = (off[None, :] < length[:, None]) & valid[:, None]
-    G = Y[rows[:, 0][:, None], jnp.clip(start[:, None] + off[None, :], 0, T - 1)]
-    ids = jnp.where(inside, jnp.arange(rows.shape[0])[:, None], -1)
-    return G, ids
-
-
-def _per_texton(x: Array, rows: Array, valid: Array, n_tex: int) -> Array:
-    bucket = jnp.where(valid, rows[:, 3], n_tex)  # invalid rows go to a discarded bucket
-    return jax.ops.segment_sum(x, bucket, num_segments=n_tex + 1)[:n_tex]
-
-
-@eqx.filter_jit
-def _frame_pass(Y: Array, rows: Array, valid: Array, n_tex: int, width: int) -> FrameStats:
-    """Pass 1 on this process's segments: frame statistics summed per texton."""
-    G, ids = _slabs(Y, rows, valid, width)
-    fs = jax.vmap(_frame_stats_impl)(G, ids)
-    return jax.tree.map(lambda a: _per_texton(a, rows, valid, n_tex), fs)
-
-
-@eqx.filter_jit
-def _dynamics_pass(
-    Y: Array, rows: Array, valid: Array, fs: FrameStats, k: int, floor: float, width: int
-) -> tuple[Subspace, DynamicsStats]:
-    """The subspaces from the summed pass-1 statistics, and pass 2 on this process's
-    segments: dynamics statistics summed per texton."""
-    n_tex = fs.count.shape[0]
-    # one texton at a time (lax.map), as in the single-process M-step: batched LAPACK calls
-    # can deadlock jaxlib's CPU thread pool on 2 cores
-    sub = jax.lax.map(lambda f: _subspace_impl(f, k, floor), fs)
-    G, ids = _slabs(Y, rows, valid, width)
-    sub_seg = jax.tree.map(lambda a: a[jnp.clip(rows[:, 3], 0, n_tex - 1)], sub)
-    ds = jax.vmap(_dynamics_stats_impl)(G, ids, sub_seg)
-    return sub, jax.tree.map(lambda a: _per_texton(a, rows, valid, n_tex), ds)
-
-
-@eqx.filter_jit
-def _solve(sub: Subspace, ds: DynamicsStats, opts: _SolveOptions) -> Texton:
-    return jax.lax.map(lambda a: _texton_from_stats_impl(a[0], a[1], opts), (sub, ds))
 
 
 # ---------------------------------------------------------------------------------------------

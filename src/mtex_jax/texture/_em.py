@@ -8,7 +8,6 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,7 +16,7 @@ from jaxtyping import Array
 from ..motion import FeatureMap
 from ._config import LearnConfig
 from ._durations import fit_durations
-from ._fit import _SolveOptions, _texton_from_stats_impl
+from ._fit import _SolveOptions
 from ._init import Segs
 from ._labels import (
     _capacity,
@@ -29,10 +28,10 @@ from ._labels import (
     _underused,
 )
 from ._model import MotionTexture
+from ._mstep import _fit_all
 from ._packing import pack_clips
 from ._rows import _CHUNK_ROWS, _row_chunks, _rows_score
 from ._segment import _segment_batch
-from ._stats import _dynamics_stats_impl, _frame_stats_impl, _subspace_impl
 from ._texton import Texton
 
 
@@ -64,76 +63,6 @@ def _masks(segs: Segs, n_seq: int, T: int) -> tuple[np.ndarray, np.ndarray]:
         lab[s, b : b + length] = i
         sid[s, b : b + length] = k
     return lab, sid
-
-
-def _fit_all_impl(
-    Y: Array,
-    rows: Array,
-    chunks: tuple[Array, Array],
-    n_tex: int,
-    width: int,
-    k: int,
-    floor: float,
-    opts,
-) -> Texton:
-    """M-step: fit every texton on all of its segments (SPEC §2), from summed statistics.
-
-    ``rows`` are segments ``(seq, start, length, label)`` of ``Y (S, T, D)``; ``chunks =
-    (labels (C,), groups (C, G))`` groups them by texton (chunk ``c`` holds up to ``G`` row
-    indices of texton ``labels[c]``, ``-1``: none; :func:`~._rows._row_chunks`). A chunk's
-    segments are gathered into ``(width, D)`` slabs laid end to end (frame ids keep terms
-    from reaching across two slabs) and its pass-1 statistics come from one ``(D, G·width)``
-    GEMM; the subspaces are solved, then pass 2 of each chunk runs in its texton's subspace,
-    again one GEMM per statistic. The chunks go one after the other (``lax.scan``), their sums
-    added into their texton's: memory holds one chunk's slabs, and the work is
-    ``O(total frames)``, not ``O(N_t × frames)``. (Per-segment GEMMs batched over the
-    segments of mixed textons, the earlier scheme, ran at a fraction of the GEMM rate.)
-    """
-    T = Y.shape[1]
-    D = Y.shape[2]
-    labels, groups = chunks
-    G = groups.shape[1]
-    off = jnp.arange(width)
-
-    def slab(g: Array) -> tuple[Array, Array]:
-        """A chunk's slabs end to end ``(G·width, D)`` and their frame ids (``-1``: unused)."""
-        r = rows[jnp.maximum(g, 0)]
-        seq, start, length = r[:, 0], r[:, 1], r[:, 2]
-        inside = (off[None, :] < length[:, None]) & (g >= 0)[:, None]
-        frames = Y[seq[:, None], jnp.clip(start[:, None] + off[None, :], 0, T - 1)]
-        ids = jnp.where(inside, jnp.arange(G)[:, None], -1)
-        return frames.reshape(G * width, D), ids.reshape(G * width)
-
-    def summed(stats: Callable[[Array, Array], Any]) -> Any:
-        """``Σ`` of ``stats(texton, row group)`` over the chunks, per texton."""
-        shapes = jax.eval_shape(stats, labels[0], groups[0])
-        acc0 = jax.tree.map(lambda a: jnp.zeros((n_tex, *a.shape), a.dtype), shapes)
-        none = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
-
-        def body(acc: Any, x: tuple[Array, Array]) -> tuple[Any, None]:
-            # the padding chunks (no rows) are skipped, not computed on zeros
-            part = jax.lax.cond(x[1][0] >= 0, lambda: stats(*x), lambda: none)
-            return jax.tree.map(lambda a, b: a.at[x[0]].add(b), acc, part), None
-
-        acc, _ = jax.lax.scan(body, acc0, (labels, groups))
-        return acc
-
-    fs = summed(lambda i, g: _frame_stats_impl(*slab(g)))
-    # The eigen-decompositions and Cholesky factorisations run one texton at a time
-    # (lax.map): batched LAPACK calls in jaxlib's CPU runtime split their batch over the
-    # intra-op thread pool and two of them running concurrently can deadlock a 2-core pool.
-    sub = jax.lax.map(lambda f: _subspace_impl(f, k, floor), fs)
-
-    def pass2(i: Array, g: Array) -> Any:
-        frames, ids = slab(g)
-        # one segment starts per slab
-        return _dynamics_stats_impl(frames, ids, jax.tree.map(lambda a: a[i], sub), G)
-
-    ds = summed(pass2)
-    return jax.lax.map(lambda a: _texton_from_stats_impl(a[0], a[1], opts), (sub, ds))
-
-
-_fit_all = eqx.filter_jit(_fit_all_impl)
 
 
 # ---------------------------------------------------------------------------------------------
