@@ -255,6 +255,51 @@ def test_duration_viterbi_equals_brute_force(T, tmin, tmax):
     assert float(fw) >= float(seg.score) - 1e-9
 
 
+def _numpy_duration_dp(scorer, log_M, log_pi, T, tmin, tmax, log_dur):
+    """The duration-aware Viterbi scores of every prefix of the frames, ``(T,)``, by a plain
+    numpy DP over (end, texton, length)."""
+    n_t = log_pi.shape[0]
+    b, e = np.meshgrid(np.arange(T), np.arange(T), indexing="ij")
+    table = np.asarray(scorer.score(b[None], e[None], np.arange(n_t)[:, None, None]))
+    V = np.full((T, n_t), -np.inf)  # best score of frames 0 … e with a segment of i ending at e
+    for end in range(T):
+        for L in range(tmin, min(tmax, end + 1) + 1):
+            start = end - L + 1
+            enter = log_pi if start == 0 else np.max(V[start - 1][:, None] + log_M, axis=0)
+            cand = enter + table[:, start, end] + log_dur[:, L - tmin]
+            V[end] = np.maximum(V[end], cand)
+    return V.max(axis=1)
+
+
+@pytest.mark.parametrize(("T", "tmin", "tmax"), [(90, 3, 40), (330, 3, 300)])
+def test_duration_viterbi_long_length_ranges_equal_numpy_dp(T, tmin, tmax):
+    """Length ranges below and above the unrolled windowed maximum (``Wn`` 38 and 298) against
+    an independent numpy DP on the same segment scores."""
+    rng = np.random.default_rng(tmax)
+    texs = [_residual_texton(np.random.default_rng(s), D=4, k=2)[0] for s in (1, 2)]
+    stack = stack_textons(texs)
+    Y = jnp.asarray(_smooth(rng, T, 4))
+    log_M = np.log(rng.dirichlet(np.ones(2), size=2))
+    log_pi = np.log(rng.dirichlet(np.ones(2)))
+    scorer = segment_scores(stack, Y)
+    n_valid = jnp.arange(T - 2 * tmax // 3, T + 1)  # many prefixes of the frames
+    ramp = np.linspace(0.0, 200.0, tmax - tmin + 1)
+    for log_dur in (  # random and peaked; favouring the shortest; favouring the longest
+        np.log(rng.dirichlet(0.3 * np.ones(tmax - tmin + 1), size=2) + 1e-12),
+        np.stack([-ramp, -ramp]),
+        np.stack([ramp, ramp]),
+    ):
+        want = _numpy_duration_dp(scorer, log_M, log_pi, T, tmin, tmax, log_dur)
+        got = jax.vmap(
+            lambda n, d=log_dur: (
+                mj.texture.viterbi_segments(scorer, log_M, log_pi, n, tmin, tmax, d).score
+            )
+        )(n_valid)
+        np.testing.assert_allclose(np.asarray(got), want[np.asarray(n_valid) - 1], rtol=1e-10)
+    seg = segment(stack, log_M, log_pi, Y, tmin, tmax, log_durations=log_dur)
+    np.testing.assert_allclose(float(seg.score), want[-1], rtol=1e-10)
+
+
 def test_duration_viterbi_bad_input():
     texs = stack_textons([_residual_texton(np.random.default_rng(s))[0] for s in (1, 2)])
     Y = jnp.asarray(_smooth(np.random.default_rng(0), 12, 4))

@@ -563,6 +563,31 @@ def test_frame_terms_beyond_the_unrolled_state_dimension(D, k):
     np.testing.assert_allclose(np.asarray(obs7), np.asarray(obs), rtol=1e-10, atol=1e-9)
 
 
+@pytest.mark.parametrize(
+    ("T", "block_size"), [(2, None), (3, None), (3, 1), (10, 3), (10, 64), (41, 8), (300, None)]
+)
+def test_full_texton_kernel_blocks_and_init_terms_against_scipy(T, block_size):
+    """k = D: the stacked-lag kernel (``_frame_terms_full``) on blocks that do and do not
+    divide T, blocks longer than T and short T; dyn and the initial-state terms (through
+    ``segment_scores``) against scipy densities of each texton."""
+    rng = np.random.default_rng(T)
+    D = 5
+    ps = [random_texton_np(rng, D, D) for _ in range(3)]
+    st = stack_textons([to_texton(p) for p in ps])
+    Y = rng.standard_normal((T, D)) * 0.5 + 1.0
+    dyn, obs = frame_terms(st, Y, block_size=block_size)
+    assert_terms_equal_reference(ps, Y, dyn, obs)
+    np.testing.assert_array_equal(obs, 0.0)
+    init = np.asarray(segment_scores(st, Y, block_size=block_size).init)
+    for i, p in enumerate(ps):
+        X = (Y - p["mu"]) @ p["C"]
+        for b in range(T - 1):
+            pair = np.concatenate([X[b], X[b + 1]])
+            ref = scipy.stats.multivariate_normal.logpdf(pair, p["m0"], p["S0"])
+            np.testing.assert_allclose(init[i, b], ref, rtol=1e-10)
+        assert init[i, T - 1] == -np.inf
+
+
 def test_frame_terms_ill_conditioned_q_and_k_equal_d():
     # B with singular values from 1e-3 to 1 (the whitened coordinates rescale by 1/s); then
     # textons with k = D (no residual dimensions: obs = 0)

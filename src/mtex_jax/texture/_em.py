@@ -123,12 +123,12 @@ class _Runner:
         self.m_min_cap = 1  # the same for the M-step's stack
         self._caps: dict[str, int] = {}
 
-    def _cap(self, name: str, want: int) -> int:
+    def _cap(self, name: str, want: int, slack: int = 2) -> int:
         """A padded size ``>= want`` for the program ``name``: the previous one while it is at
-        most twice ``want``, so that a count that shrinks a little (segments, pruned textons)
-        reuses the compiled program instead of compiling a smaller one."""
+        most ``slack`` times ``want``, so that a count that shrinks a little (segments, pruned
+        textons) reuses the compiled program instead of compiling a smaller one."""
         last = self._caps.get(name, 0)
-        cap = last if want <= last <= 2 * want else want
+        cap = last if want <= last <= slack * want else want
         self._caps[name] = cap
         return cap
 
@@ -174,9 +174,11 @@ class _Runner:
         ``_CHUNK_ROWS`` (:func:`_row_chunks`), padded to a bucketed number of chunks."""
         idx = np.arange(len(segs)) if rows_valid is None else np.flatnonzero(rows_valid)
         lab = segs[idx, 3]
-        counts = np.bincount(lab) if len(lab) else np.zeros(1, np.int64)
-        n_chunks = int(np.sum(-(-counts // _CHUNK_ROWS)))
-        labels, groups = _row_chunks(lab, self._cap("m_chunks", _capacity(max(n_chunks, 1))))
+        # sized by a bound of the chunk count that changes little as EM relabels and prunes
+        # (all rows, every texton with a row: one partial chunk each), and kept while it is
+        # at most 4 times that: a padding chunk is skipped, not computed
+        bound = -(-len(segs) // _CHUNK_ROWS) + np.unique(lab).size
+        labels, groups = _row_chunks(lab, self._cap("m_chunks", _capacity(max(bound, 1)), 4))
         groups = np.where(groups >= 0, idx[np.maximum(groups, 0)], -1)
         return jax.device_put(labels), jax.device_put(groups)
 
@@ -225,10 +227,12 @@ class _Runner:
         # only the real textons: the capacity padding of the M-step would double the work
         # (N_t changes rarely, so the extra compilations are few); up to _PAD_E_STEP textons
         # the stack is padded to a power of two (model selection visits every small N_t),
-        # beyond it to a multiple of 8
+        # kept while at most 4 times the need (an E-step program compiles in about 2 s, while
+        # 16 slots instead of 4 cost about 0.5 s more per E-step at 50k frames); beyond
+        # _PAD_E_STEP to a multiple of 8
         n = M.shape[0]
         if n <= _PAD_E_STEP:
-            cap = self._cap("e_step", max(_capacity(n), self.min_cap))
+            cap = self._cap("e_step", max(_capacity(n), self.min_cap), 4)
         else:  # a multiple of 8: at most 7 slots of extra work, fewer programs
             cap = -(-n // 8) * 8
         tex = _take(tex, np.minimum(np.arange(cap), n - 1))

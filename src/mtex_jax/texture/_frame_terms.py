@@ -21,6 +21,7 @@ from ._checks import (
     _float_dtype,
     _psd_cholesky,
 )
+from ._frame_terms_full import _full_block_frames, _full_terms
 from ._texton import Texton, _check_texton
 from ._workers import _check_workers, _n_parts, run_row_blocks
 
@@ -48,11 +49,14 @@ def _block_frames(block_size: Any, textons: Texton, Y: Array) -> int:
     The automatic choice keeps a block's ``(N_t·(k+1), block + 2)`` projections (in the
     promoted dtype of ``Y`` and the stacked ``textons``) near ``_BLOCK_BYTES`` (for
     ``k > _UNROLL_MAX_K``: ``_BLOCK_BYTES_WIDE``) with ``block + 2`` a multiple of 16
-    (GEMM-friendly), between 14 and 1022.
+    (GEMM-friendly), between 14 and 1022. Full-dimensional textons (``k = D``):
+    :func:`~._frame_terms_full._full_block_frames`.
     """
     if block_size is None:
         itemsize = jnp.dtype(_float_dtype(Y, textons.mu)).itemsize
         n, k = textons.n_textons, textons.state_dim
+        if k == textons.obs_dim:  # full-dimensional textons: the kernel of _frame_terms_full
+            return _full_block_frames(n, k, itemsize)
         budget = _BLOCK_BYTES if k <= _UNROLL_MAX_K else _BLOCK_BYTES_WIDE
         cols = budget // max(n * (k + 1) * itemsize, 1)
         return min(max(16 * (cols // 16), 16), 1024) - 2
@@ -199,6 +203,24 @@ def _residual_ar_terms(
     return -0.5 * (res_const + e2 / res_s2)
 
 
+def _frame_coefs(
+    textons: Texton, ybar: Array, with_init: bool
+) -> tuple[Array, dict[str, Array], dict[str, Array] | None]:
+    """``(ȳ, cw, ic)``: the per-texton constants of :func:`_whitened_coords` and (with
+    ``with_init``) :func:`_init_coords` for frames centred by ``ybar (D,)``, stacked along the
+    texton axis; computed once for several calls of :func:`_frame_terms_impl` (``coefs``) on
+    the same textons (any ``ȳ`` gives the same terms; one near the frames' mean keeps the
+    rounding small)."""
+    dtype = _float_dtype(ybar, textons.mu)
+    ybar = ybar.astype(dtype)
+    textons = jax.tree.map(lambda a: a.astype(dtype), textons)
+    cw = jax.vmap(_whitened_coords, in_axes=(0, None))(textons, ybar)
+    ic = None
+    if with_init:  # per texton (lax.map): the Cholesky factors of S0 are not one batched call
+        ic = lax.map(lambda a: _init_coords(*a), (textons, cw["U"], cw["s"]))
+    return ybar, cw, ic
+
+
 def _frame_terms_impl(
     textons: Texton,
     Y: Array,
@@ -206,6 +228,7 @@ def _frame_terms_impl(
     with_init: bool = False,
     out_rows: int | None = None,
     check: bool = True,
+    coefs: tuple[Array, dict[str, Array], dict[str, Array] | None] | None = None,
 ) -> tuple[Array, ...]:
     """Time-blocked per-frame terms of a stack of textons, ``(N_t, T)`` each (see frame_terms).
 
@@ -223,7 +246,8 @@ def _frame_terms_impl(
     ``out_rows`` (not with ``with_init``): ``dyn`` and ``obs`` get ``out_rows >= N_t`` rows, of
     which the first ``N_t`` are computed and the others are 0 (the rest of a stack, to be
     filled in place by :func:`_merge_rows`). ``check=False`` skips the in-trace NaN/inf check
-    of ``Y`` (for callers that checked it eagerly).
+    of ``Y`` (for callers that checked it eagerly). ``coefs``: :func:`_frame_coefs` of
+    ``textons`` (with the same ``with_init``), computed by the caller once for many calls.
     """
     if check:
         Y = _error_if_nonfinite(Y, "Y")
@@ -232,16 +256,18 @@ def _frame_terms_impl(
     textons = jax.tree.map(lambda a: a.astype(dtype), textons)
     T, D = Y.shape
     n, _, k = textons.C.shape
-    ybar = jnp.mean(Y, axis=0)
-    cw = jax.vmap(_whitened_coords, in_axes=(0, None))(textons, ybar)
+    if coefs is None:
+        coefs = _frame_coefs(textons, jnp.mean(Y, axis=0), with_init)
+    ybar, cw, ic = coefs
     # rows i(k+1) … i(k+1)+k of P are texton i's projection onto [z_t; (y_t − ȳ)·(μ_i − ȳ)]
     P = cw["P"].reshape(n * (k + 1), D + 1)
     F, e, s2 = cw["F"], cw["e"], cw["s2"]
     if with_init:  # [F1; F2; E0; E1[k:]]: one small GEMM per texton for both
-        # per texton (lax.map): the Cholesky factors of S0 are not one batched LAPACK call
-        ic = lax.map(lambda a: _init_coords(*a), (textons, cw["U"], cw["s"]))
+        assert ic is not None
         F = jnp.concatenate([F, ic["E"]], axis=1)
         init_c, init_const = ic["init_c"], ic["init_const"][:, None]
+    if k == D:  # no residual: the stacked-lag kernel
+        return _full_terms(cw, ic, Y - ybar, block, out_rows)
     dyn_const = cw["dyn_const"][:, None]
     obs_const = cw["obs_const"][:, None]
     mcmc = cw["mcmc"][:, None]

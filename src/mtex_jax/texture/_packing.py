@@ -93,7 +93,12 @@ def pack_clips(n_frames: np.ndarray, T: int, clip_batch: int) -> Packing:
 
 
 def _packed_scores_impl(
-    textons: Texton, Yflat: Array, frames: Array, where: Array, n: Array
+    textons: Texton,
+    Yflat: Array,
+    frames: Array,
+    where: Array,
+    n: Array,
+    coefs: tuple[Array, dict[str, Array], dict[str, Array] | None] | None = None,
 ) -> SegmentScorer:
     """The :class:`SegmentScorer` of each clip of one packed batch (leading axis ``c``), equal
     to the per-clip :func:`segment_scores` to rounding on every segment of the clip.
@@ -101,12 +106,13 @@ def _packed_scores_impl(
     Terms that reach across two clips of the batch (``dyn`` at a clip's frames 0 and 1,
     ``init`` at its last frame) are never part of a segment score; they are set to the values
     the per-clip kernel gives them (0 and ``−inf``), and the terms past a clip's end to 0
-    (``init``: ``−inf``).
+    (``init``: ``−inf``). ``coefs``: the textons' :func:`_frame_coefs` (``with_init=True``),
+    computed once for all batches (default: from this batch's frames).
     """
     Yb = Yflat[frames]  # (P, D): the batch's real frames end to end
     P = Yb.shape[0]
     block = _block_frames(None, textons, Yb)
-    dyn, obs, init = _frame_terms_impl(textons, Yb, min(block, P), with_init=True)
+    dyn, obs, init = _frame_terms_impl(textons, Yb, min(block, P), with_init=True, coefs=coefs)
     T = where.shape[-1]
     t = jnp.arange(T)
 

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ._frame_terms import _frame_coefs
 from ._packing import _packed_scores_impl
 from ._scores import SegmentScorer, _batch_scores_impl, segment_scores
 from ._texton import Texton
@@ -145,6 +146,10 @@ def _check_dp_inputs(
     return tmin, tmax, log_M, log_pi
 
 
+# Most segment lengths whose windowed maximum is unrolled (compile time grows with it).
+_UNROLL_MAX_LENGTHS = 256
+
+
 @eqx.filter_jit
 def viterbi_segments(
     scorer: SegmentScorer,
@@ -196,7 +201,15 @@ def viterbi_segments(
     def windowed_max(win: Array) -> Array:
         if log_durations is None:
             return jax.lax.reduce_window(win, neg, jax.lax.max, (Wn, 1), (1, 1), "VALID")
-        return jnp.max(win[gather] + dur_rev[None], axis=1)  # (P, N)
+        if Wn > _UNROLL_MAX_LENGTHS:
+            return jnp.max(win[gather] + dur_rev[None], axis=1)  # (P, N)
+        # max over w of win[p + w] + dur_rev[w]: an unrolled chain of shifted slices, which
+        # XLA fuses into one pass (the gathered (P, Wn, N) array is written and re-read;
+        # 0.57 -> 0.38 s for 56 textons on the 51 clips of 49,708 frames)
+        out = win[:P] + dur_rev[0]
+        for w in range(1, Wn):
+            out = jnp.maximum(out, win[w : w + P] + dur_rev[w])
+        return out  # (P, N)
 
     def block(bbuf, s):
         win = jax.lax.dynamic_slice(bbuf, (s + 1, 0), (tmax, n_t))  # b in [s − tmax + 1, s]
@@ -368,11 +381,14 @@ def _segment_batch(
         return seg, jax.vmap(old_sum)(sc, *old)
     S, T, D = Y.shape
     Yflat = Y.reshape(S * T, D)
+    # the textons' constants once for all batches, for frames centred by the clips' mean
+    ybar = jnp.sum(Yflat, axis=0) / jnp.maximum(jnp.sum(nf), 1).astype(Y.dtype)
+    coefs = _frame_coefs(textons, ybar, with_init=True)
 
     def batch(args: tuple[Array, ...]) -> tuple[Segmentation, Array]:
         frames, where, n, clip = args
         n = n.astype(nf.dtype)
-        sc = _packed_scores_impl(textons, Yflat, frames, where, n)
+        sc = _packed_scores_impl(textons, Yflat, frames, where, n, coefs)
         seg = jax.vmap(one)(sc, n)
         if old is None:
             return seg, jnp.zeros(clip.shape, Y.dtype)

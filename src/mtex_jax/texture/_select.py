@@ -83,34 +83,47 @@ def choose_state_dim(
     V = V[:, ::-1]
     w = np.maximum(w[::-1], 0.0)
     us = [y - mu for y in ys]
-    # lagged frames of all clips: u_t, u_{t−1}, u_{t−2}
-    u0 = np.concatenate([u[2:] for u in us])
-    u1 = np.concatenate([u[1:-1] for u in us])
-    u2 = np.concatenate([u[:-2] for u in us])
-    N = u0.shape[0]
+    # lagged frames of all clips, u_t, u_{t−1}, u_{t−2}, and their cross-products: every
+    # statistic below is a block of S (or of s1) seen through C = V[:, :k] or its complement
+    lag = np.concatenate([np.concatenate([u[2:], u[1:-1], u[:-2]], axis=1) for u in us])  # (N, 3D)
+    N = lag.shape[0]
+    S = lag.T @ lag
+    s1 = lag.sum(axis=0)
     table = []
     for k in cands:
         C = V[:, :k]
-        x0, x1, x2 = u0 @ C, u1 @ C, u2 @ C
-        Xp = np.concatenate([x1, x2, np.ones((N, 1))], axis=1)
-        G = Xp.T @ Xp
-        lam = ridge * np.trace(G[:-1, :-1]) / (2 * k)
+        Cb = np.kron(np.eye(3), C)  # (3D, 3k): x_t, x_{t−1}, x_{t−2} from the lags
+        Sx, m = Cb.T @ S @ Cb, Cb.T @ s1
+        # Xp = [x_{t−1}, x_{t−2}, 1]: XpᵀXp, Xpᵀx_t and the residual E = x_t − Xp coef
+        G0 = np.block([[Sx[k:, k:], m[k:, None]], [m[None, k:], np.array([[float(N)]])]])
+        rhs = np.concatenate([Sx[k:, :k], m[None, :k]], axis=0)
+        G = G0.copy()
+        lam = ridge * np.trace(G0[:-1, :-1]) / (2 * k)
         G[:-1, :-1] += lam * np.eye(2 * k)
-        coef = np.linalg.solve(G, Xp.T @ x0)
-        E = x0 - Xp @ coef
-        Q = E.T @ E / N + 1e-9 * np.eye(k)
+        coef = np.linalg.solve(G, rhs)
+        EtE = Sx[:k, :k] - coef.T @ rhs - rhs.T @ coef + coef.T @ G0 @ coef
+        Q = 0.5 * (EtE + EtE.T) / N + 1e-9 * np.eye(k)
         ll = -0.5 * N * (k * _LOG_2PI + np.linalg.slogdet(Q)[1] + k)
         if k < D:
             if observation == "paper":
                 s2 = max(float(w[k:].sum()) / (n * (D - k)), 1e-12)
                 ll += -0.5 * n * (D - k) * (math.log(s2) + _LOG_2PI + 1)
             else:
-                r0, r1, r2 = (u - (u @ C) @ C.T for u in (u0, u1, u2))
-                Gr = np.array([[np.sum(a * b) for b in (r1, r2)] for a in (r1, r2)])
-                g = np.array([np.sum(r0 * r1), np.sum(r0 * r2)])
+                # r = (I − CCᵀ) u = P Pᵀ u with P = V[:, k:]: Σ r_a·r_b = tr(Pᵀ S_ab P)
+                P = V[:, k:]
+                Pb = np.kron(np.eye(3), P)
+                Sr = Pb.T @ S @ Pb
+                r = D - k
+                R = np.array(
+                    [
+                        [np.trace(Sr[i * r : (i + 1) * r, j * r : (j + 1) * r]) for j in range(3)]
+                        for i in range(3)
+                    ]
+                )
+                Gr, g = R[1:, 1:], R[0, 1:]
                 a = np.linalg.solve(Gr + 1e-12 * np.trace(Gr) * np.eye(2), g)
-                e = r0 - a[0] * r1 - a[1] * r2
-                s2 = max(float(np.sum(e * e)) / (N * (D - k)), 1e-12)
+                ee = R[0, 0] - 2 * a @ g + a @ Gr @ a  # Σ‖r_t − a₁ r_{t−1} − a₂ r_{t−2}‖²
+                s2 = max(float(ee) / (N * (D - k)), 1e-12)
                 ll += -0.5 * N * (D - k) * (math.log(s2) + _LOG_2PI + 1)
         p = n_params(1, D, k, observation)
         table.append({"k": k, "loglik": ll, "params": p, "bic": -2 * ll + p * math.log(n)})
