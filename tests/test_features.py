@@ -129,6 +129,26 @@ def test_feature_map_save_load_and_bad_files(tmp_path):
         mj.load_feature_map(tmp_path / "absent.npz")
 
 
+def test_fit_encode_equals_fit_then_encode(cmu_motions):
+    """The learner's one-pass fit_encode (raw channels once, every clip padded to the longest
+    one's bucket) gives the map and observations of fit + encode exactly, on clips of
+    different lengths (different buckets) and a clip cut short."""
+    clips = [m.resample(60.0) for m in cmu_motions[:3]]
+    clips.append(clips[0][:100])
+    fm, ys = mj.FeatureMap.fit_encode(clips)
+    ref = mj.FeatureMap.fit(clips)
+    assert fm.active == ref.active
+    np.testing.assert_array_equal(fm.offset, ref.offset)
+    np.testing.assert_array_equal(fm.scale, ref.scale)
+    assert len({m.n_frames for m in clips}) > 1
+    for m, y in zip(clips, ys, strict=True):
+        np.testing.assert_array_equal(y, np.asarray(ref.encode(m)))
+    with pytest.raises(ValueError, match="no motions"):
+        mj.FeatureMap.fit_encode([])
+    with pytest.raises(TypeError, match="not a Motion"):
+        mj.FeatureMap.fit_encode([clips[0], np.zeros((3, 3))])  # type: ignore[list-item]
+
+
 def test_feature_map_input_checks(cmu_motions):
     dance = mj.load_example("dance_a")
     walk = mj.load_example("walk")  # 30 Hz

@@ -355,3 +355,32 @@ def test_pruning_the_greedy_textons_early_changes_nothing_on_salsa(monkeypatch, 
     cfg = LearnConfig(tmin=60, tmax=180, fps=60.0)
     new, old = _learn_both_ways(monkeypatch, cmu_motions, cfg)
     _assert_same_texture(new, old)
+
+
+def test_greedy_prediction_errors_equal_the_direct_formula():
+    """The greedy pass's stacked errors (two GEMMs and ‖p‖², C orthonormal) against the direct
+    per-texton ‖y_t − μ − C(A1 x_{t−1} + A2 x_{t−2} + d)‖² / D in numpy, for fitted textons
+    and a stack padded with copies of its last texton."""
+    import jax
+
+    from mtex_jax.texture import fit_texton
+    from mtex_jax.texture._init import _Bank, _bank_errors
+
+    rng = np.random.default_rng(8)
+    Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=6)
+    bank = _Bank()
+    texs = [fit_texton(Y[b : b + 60], state_dim=3) for b in (0, 100, 200)]
+    for t in texs:
+        bank.add(t)
+    win = Y[300:360]
+    got = np.asarray(_bank_errors(bank.stacked(), jax.device_put(win)))
+    assert got.shape[0] >= 3 and np.all(got[:, :2] == 0.0)
+    for i, t in enumerate(texs):
+        mu, C, A1, A2, d = (np.asarray(getattr(t, f)) for f in ("mu", "C", "A1", "A2", "d"))
+        X = (win - mu) @ C
+        yhat = mu + (X[1:-1] @ A1.T + X[:-2] @ A2.T + d) @ C.T
+        want = np.sum((win[2:] - yhat) ** 2, axis=1) / win.shape[1]
+        np.testing.assert_allclose(got[i, 2:], want, rtol=1e-9, atol=1e-12)
+        one = np.asarray(_bank_errors(bank.one(i), jax.device_put(win)))[0]
+        np.testing.assert_allclose(one, got[i], rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(got[3:], np.broadcast_to(got[2], got[3:].shape), rtol=1e-12)

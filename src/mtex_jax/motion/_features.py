@@ -225,12 +225,38 @@ class FeatureMap(eqx.Module):
         motions = list(motions)
         if not motions:
             raise ValueError("FeatureMap.fit: no motions given")
-        first = motions[0]
         for i, m in enumerate(motions):
             if not isinstance(m, Motion):
                 raise TypeError(f"FeatureMap.fit: item {i} is {type(m).__name__}, not a Motion")
         _check_compatible(motions, "FeatureMap.fit", "resample with motion.resample(fps) first")
-        raws = [np.asarray(_raw(m)) for m in motions]
+        return cls._fit_raws(motions, _raws(motions), const_tol, min_scale)
+
+    @classmethod
+    def fit_encode(
+        cls, motions: Sequence[Motion], *, const_tol: float = 1e-6, min_scale: float = 0.0
+    ) -> tuple[FeatureMap, list[np.ndarray]]:
+        """:meth:`fit` on ``motions`` and :meth:`encode` of each, with the raw channels
+        computed once (for the learner: equal to ``fit`` then ``encode``, in half the work).
+
+        Returns:
+            ``(feature map, [Y (T_s, D) as NumPy arrays])``.
+        """
+        motions = list(motions)
+        if not motions:
+            raise ValueError("FeatureMap.fit: no motions given")
+        for i, m in enumerate(motions):
+            if not isinstance(m, Motion):
+                raise TypeError(f"FeatureMap.fit: item {i} is {type(m).__name__}, not a Motion")
+        _check_compatible(motions, "FeatureMap.fit", "resample with motion.resample(fps) first")
+        raws = _raws(motions)
+        fm = cls._fit_raws(motions, raws, const_tol, min_scale)
+        return fm, [np.asarray(_scale(fm, r)) for r in raws]
+
+    @classmethod
+    def _fit_raws(
+        cls, motions: list[Motion], raws: list[np.ndarray], const_tol: float, min_scale: float
+    ) -> FeatureMap:
+        first = motions[0]
         allr = np.concatenate(raws, axis=0)
         if not np.all(np.isfinite(allr)):
             raise ValueError("FeatureMap.fit: non-finite values in the motions")
@@ -410,11 +436,20 @@ def _channel_names(sk: Skeleton, has_lp: bool) -> tuple[str, ...]:
 _BUCKET = 256
 
 
-def _raw(m: Motion) -> Array:
-    """Raw channels of a clip; frames are padded (last frame repeated) to a multiple of 256 so
-    that clips of similar length share one compiled function."""
+def _raws(motions: list[Motion]) -> list[np.ndarray]:
+    """Raw channels of clips, all padded to the longest one's bucket: one compiled function
+    for the lot (the channels are causal in time, so the padding changes no real frame)."""
+    tp = max(-(-m.n_frames // _BUCKET) * _BUCKET for m in motions)
+    return [np.asarray(_raw(m, tp)) for m in motions]
+
+
+def _raw(m: Motion, tp: int | None = None) -> Array:
+    """Raw channels of a clip; frames are padded (last frame repeated) to ``tp`` frames
+    (default: a multiple of 256) so that clips of similar length share one compiled
+    function."""
     t = m.n_frames
-    tp = -(-t // _BUCKET) * _BUCKET
+    if tp is None:
+        tp = -(-t // _BUCKET) * _BUCKET
     idx = np.minimum(np.arange(tp), t - 1)
     lp = None if m.local_positions is None else m.local_positions[idx]
     raw = _raw_jit(m.skeleton.up_axis, m.root_positions[idx], m.rotations[idx], lp)
@@ -428,7 +463,7 @@ def _raw_jit(up_axis: int, root_positions, rotations, local_positions) -> Array:
     return raw_features(root_positions, rotations, local_positions, up_axis=up_axis)
 
 
-def _scale(fm: FeatureMap, raw: Array) -> Array:
+def _scale(fm: FeatureMap, raw: Array | np.ndarray) -> Array:
     # elementwise on the host (the same IEEE operations): eager JAX ops here would compile
     # once per clip length
     r = np.asarray(raw)

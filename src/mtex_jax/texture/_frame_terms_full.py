@@ -75,6 +75,9 @@ def _full_terms(
     dtype = Yc.dtype
     rows = jax.vmap(lambda c, i: _lag_rows(c, i, k))(cw, ic)
     G = rows[0].reshape(n * k, 3 * D + 1)
+    if ic is not None:
+        Ha = rows[1].reshape(n * k, D + 1)
+        Hb = rows[2].reshape(n * k, 2 * D + 1)
     W = max(min(block, T), 1)
     n_blocks = -(-T // W)
     # ŷ_{−2}, ŷ_{−1} := 0 (their rows' dyn and init are discarded), and padding past T
@@ -91,8 +94,6 @@ def _full_terms(
         X = jnp.concatenate([Yw[:-2], Yw[2:], Yw[1:-1], ones], axis=1)  # rows x_t
         out = [lax.dynamic_update_slice_in_dim(carry[0], sq_norms(G, X), w0, axis=1)]
         if ic is not None:
-            Ha = rows[1].reshape(n * k, D + 1)
-            Hb = rows[2].reshape(n * k, 2 * D + 1)
             u2 = sq_norms(Ha, X[:, 2 * D :]) + sq_norms(Hb, X[:, D:])
             out.append(lax.dynamic_update_slice_in_dim(carry[1], u2, w0, axis=1))
         return tuple(out)

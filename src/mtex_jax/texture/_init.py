@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array
 
 from ._config import LearnConfig
 from ._fit import fit_texton
@@ -32,40 +32,40 @@ def _feasible(n: int, tmin: int, tmax: int) -> bool:
 # ---------------------------------------------------------------------------------------------
 # Greedy initialisation
 # ---------------------------------------------------------------------------------------------
-_ERR_FIELDS = ("mu", "C", "A1", "A2", "d")
+def _err_leaves(mu: np.ndarray, C: np.ndarray, A1: np.ndarray, A2: np.ndarray, d: np.ndarray):
+    """One texton's arrays for :func:`_bank_errors` (numpy, host): ``μ (D,)``,
+    ``Cm = [C; −μᵀC] (D+1, k)``, ``W = [C A1ᵀ; C A2ᵀ; dᵀ − μᵀC(A1 + A2)ᵀ] (2D+1, k)`` and
+    ``‖μ‖²``, so that ``x_t = [y_t, 1] Cm`` and ``p_t = [y_{t−1}, y_{t−2}, 1] W``."""
+    muC = mu @ C
+    Cm = np.concatenate([C, -muC[None]], axis=0)
+    W = np.concatenate([C @ A1.T, C @ A2.T, (d - muC @ A1.T - muC @ A2.T)[None]], axis=0)
+    return mu, Cm, W, np.asarray(mu @ mu)
 
 
 @jax.jit
 def _bank_errors(leaves: tuple[Array, ...], Y: Array) -> Array:
-    """The errors of :func:`_prediction_errors` for a stack given as the arrays of
-    ``_ERR_FIELDS`` (a plain ``jax.jit`` of arrays: its dispatch costs far less than a
-    filtered call on a Module, over the hundreds of calls of one greedy pass).
+    """Per-frame one-step prediction errors ``‖y_t − μ − C(A1 x_{t−1} + A2 x_{t−2} + d)‖² / D``
+    of a stack of textons given by their :func:`_err_leaves` (leading axis ``n``) on the
+    frames ``Y (L, D)``, ``(n, L)`` (frames 0 and 1 get 0).
 
-    With ``x_t = Cᵀ(y_t − μ)`` and the prediction ``p_t = A1 x_{t−1} + A2 x_{t−2} + d``:
-    ``‖y_t − μ − C p_t‖² = ‖y_t − μ‖² − 2 x_t·p_t + p_tᵀ CᵀC p_t``, so that the frames meet
-    the textons in one GEMM, ``Y [C_1 … C_n]``, instead of two small products per texton.
+    ``C`` has orthonormal columns (an eigenbasis, as :func:`fit_texton` makes it), so with
+    ``x_t = Cᵀ(y_t − μ)`` and the prediction ``p_t = A1 x_{t−1} + A2 x_{t−2} + d``:
+    ``‖y_t − μ − C p_t‖² = ‖y_t − μ‖² − 2 x_t·p_t + ‖p_t‖²``, and ``x`` and ``p`` of every
+    texton come from two GEMMs of the frames with the stacked ``Cm`` and ``W``, instead of
+    small products per texton. (A plain ``jax.jit`` of arrays: its dispatch costs far less
+    than a filtered call on a Module, over the hundreds of calls of one greedy pass.)
     """
-    mu, C, A1, A2, d = leaves
-    n, D, k = C.shape
-    L = Y.shape[0]
-    YC = (Y @ jnp.moveaxis(C, 0, 1).reshape(D, n * k)).reshape(L, n, k)
-    X = YC - jnp.einsum("nd,ndk->nk", mu, C)[None]  # (L, n, k): x_t of every texton
-    P = jnp.einsum("lnj,nkj->lnk", X[1:-1], A1) + jnp.einsum("lnj,nkj->lnk", X[:-2], A2) + d
-    CtC = jnp.einsum("ndj,ndk->njk", C, C)
-    yy = jnp.sum(Y[2:] ** 2, axis=1)[:, None] - 2.0 * Y[2:] @ mu.T + jnp.sum(mu * mu, axis=1)
-    e = yy - 2.0 * jnp.sum(X[2:] * P, axis=-1) + jnp.einsum("lnj,njk,lnk->ln", P, CtC, P)
-    e = jnp.maximum(e, 0.0) / D
+    mu, Cm, W, mm = leaves
+    n, D1, k = Cm.shape
+    D, L = D1 - 1, Y.shape[0]
+    one = jnp.ones((L, 1), Y.dtype)
+    X = jnp.concatenate([Y, one], axis=1) @ jnp.moveaxis(Cm, 0, 1).reshape(D1, n * k)
+    lag = jnp.concatenate([Y[1:-1], Y[:-2], one[2:]], axis=1)
+    P = lag @ jnp.moveaxis(W, 0, 1).reshape(2 * D + 1, n * k)
+    X, P = X[2:].reshape(L - 2, n, k), P.reshape(L - 2, n, k)
+    yy = jnp.sum(Y[2:] ** 2, axis=1)[:, None] - 2.0 * Y[2:] @ mu.T + mm
+    e = jnp.maximum(yy - 2.0 * jnp.sum(X * P, axis=-1) + jnp.sum(P * P, axis=-1), 0.0) / D
     return jnp.concatenate([jnp.zeros((n, 2), Y.dtype), e.T], axis=1)
-
-
-def _prediction_errors(tex: Texton, Y: Float[Array, "L D"]) -> Float[Array, "n L"]:
-    """Per-frame one-step prediction error ``‖y_t − μ − C(A1 x_{t−1} + A2 x_{t−2} + d)‖² / D``.
-
-    ``tex`` may be stacked (leading axis ``n``); frames 0 and 1 get 0.
-    """
-    if not tex.is_stacked:
-        tex = jax.tree.map(lambda a: a[None], tex)
-    return _bank_errors(tuple(getattr(tex, f) for f in _ERR_FIELDS), Y)
 
 
 # Smallest capacity of the bank: each capacity compiles _bank_errors once (about 0.1 s), and
@@ -84,7 +84,7 @@ class _Bank:
 
     def add(self, t: Texton) -> int:
         n = len(self.items)
-        leaves = [np.asarray(getattr(t, f)) for f in _ERR_FIELDS]
+        leaves = _err_leaves(*(np.asarray(getattr(t, f)) for f in ("mu", "C", "A1", "A2", "d")))
         if not self._host or n == self._host[0].shape[0]:  # grow: double the capacity
             cap = max(_BANK_MIN_CAP, 2 * n)
             grown = [np.repeat(a[None], cap, axis=0) for a in leaves]
@@ -98,14 +98,15 @@ class _Bank:
         return n
 
     def one(self, i: int) -> tuple[Array, ...]:
-        """Texton ``i``'s fields of ``_ERR_FIELDS``, each ``(1, …)``, on the device."""
-        return tuple(jax.device_put(h[i : i + 1]) for h in self._host)
+        """Texton ``i``'s :func:`_err_leaves`, each ``(1, …)``, on the device."""
+        return jax.device_put(tuple(h[i : i + 1] for h in self._host))
 
     def stacked(self) -> tuple[Array, ...]:
-        """The fields of ``_ERR_FIELDS``, ``(capacity, …)`` each, on the device."""
-        if self._stack is None:
-            self._stack = tuple(jax.device_put(h) for h in self._host)
-        return self._stack
+        """The :func:`_err_leaves` of the bank, ``(capacity, …)`` each, on the device."""
+        stack = self._stack
+        if stack is None:
+            stack = self._stack = jax.device_put(tuple(self._host))
+        return stack
 
 
 # Greedy init fits a texton on one window of tmin frames; more state dimensions than the

@@ -43,8 +43,7 @@ def _check_data(
     motions = None
     if all(isinstance(d, Motion) for d in data):
         motions = [m if config.fps is None else m.resample(config.fps) for m in data]
-        fm = FeatureMap.fit(motions)
-        ys = [np.asarray(fm.encode(m)) for m in motions]
+        fm, ys = FeatureMap.fit_encode(motions)
     elif any(isinstance(d, Motion) for d in data):
         raise TypeError("learn: data must be all Motions or all (T, D) arrays, not a mixture")
     else:
