@@ -128,8 +128,8 @@ def child_learn(n_frames: int, estep: bool) -> dict[str, Any]:
         frames=int(sum(m.n_frames for m in clips)),
         clips=len(clips),
         wall_s=wall,
-        split_s=split,
-        calls=calls,
+        split_s=dict(split),  # copies: the E-step measurement below calls the runner again
+        calls=dict(calls),
         other_s=wall - sum(split.values()),
         compile_s=compile_s["s"],
         em_iterations=len(iters),

@@ -198,3 +198,41 @@ def test_chunked_m_step_equals_per_texton_fits(observation):
         # C is defined up to the signs of its columns
         c_got, c_want = np.asarray(one.C), np.asarray(want.C)
         np.testing.assert_allclose(np.abs(c_got.T @ c_want), np.eye(k), atol=1e-7)
+
+
+@pytest.mark.parametrize("cap", [16, 24])
+def test_e_step_skips_the_padding_textons_of_a_full_stack(cap):
+    # the learner pads its stacks (copies of the last texton, never entered: log π and the
+    # log M columns are -inf); with n_active the full-dimensional kernel skips the padding
+    # groups (4 textons per group up to 16, else 8). The segmentation, its score and the given
+    # segments' scores equal those of the unpadded stack.
+    rng = np.random.default_rng(5)
+    D = 6
+    texs = [
+        fit_texton(jnp.asarray(_smooth(rng, 150, D)), state_dim=D, observation="full")
+        for _ in range(5)
+    ]
+    n = len(texs)
+    Y = np.zeros((3, 140, D))
+    nf = np.array([90, 140, 117])
+    for s, m in enumerate(nf):
+        Y[s, :m] = _smooth(rng, m, D)
+    M = rng.dirichlet(np.ones(n), size=n)
+    pi = rng.dirichlet(np.ones(n))
+    old = np.zeros((3, 3, 4), dtype=np.int64)
+    old[:, 0, 0], old[:, 1, 0], old[:, 2, 0] = (0, 40, 1), (3, 60, 4), (50, 67, 2)
+    old_j = tuple(jnp.asarray(a) for a in old)
+    packing = pack_clips(nf, 140, 2)
+    lM = np.full((cap, cap), -np.inf)
+    lM[:n, :n] = np.log(M)
+    lpi = np.full(cap, -np.inf)
+    lpi[:n] = np.log(pi)
+    padded = stack_textons(texs + [texs[-1]] * (cap - n))
+    args = (jnp.asarray(Y), jnp.asarray(nf), 20, 70, None, packing, old_j)
+    want_seg, want_old = _segment_batch(stack_textons(texs), jnp.log(M), jnp.log(pi), *args)
+    for n_active in (jnp.asarray(n, jnp.int32), jnp.asarray(n), None):  # as the learner passes
+        seg, got_old = _segment_batch(padded, jnp.asarray(lM), jnp.asarray(lpi), *args, n_active)
+        np.testing.assert_allclose(np.asarray(seg.score), np.asarray(want_seg.score), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(got_old), np.asarray(want_old), rtol=1e-12)
+        for f in ("starts", "lengths", "labels", "n_segments"):
+            np.testing.assert_array_equal(getattr(seg, f), getattr(want_seg, f))

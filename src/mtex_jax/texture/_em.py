@@ -250,6 +250,7 @@ class _Runner:
             None if log_d is None else jnp.asarray(log_d, self.Y.dtype),
             self.packing,
             self._old_rows(np.zeros((0, 4), np.int64) if old is None else old),
+            jax.device_put(np.int32(n)),  # the padding slots' frame terms are skipped
         )
         seg, old_j = seg
         old_scores = None if old is None else np.asarray(old_j)[: len(self.ys)]

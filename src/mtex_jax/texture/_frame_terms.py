@@ -229,6 +229,7 @@ def _frame_terms_impl(
     out_rows: int | None = None,
     check: bool = True,
     coefs: tuple[Array, dict[str, Array], dict[str, Array] | None] | None = None,
+    n_active: Array | None = None,
 ) -> tuple[Array, ...]:
     """Time-blocked per-frame terms of a stack of textons, ``(N_t, T)`` each (see frame_terms).
 
@@ -248,6 +249,8 @@ def _frame_terms_impl(
     filled in place by :func:`_merge_rows`). ``check=False`` skips the in-trace NaN/inf check
     of ``Y`` (for callers that checked it eagerly). ``coefs``: :func:`_frame_coefs` of
     ``textons`` (with the same ``with_init``), computed by the caller once for many calls.
+    ``n_active`` (traced, full-dimensional textons only): only the first ``n_active`` rows are
+    needed (see :func:`~._frame_terms_full._full_terms`).
     """
     if check:
         Y = _error_if_nonfinite(Y, "Y")
@@ -267,7 +270,7 @@ def _frame_terms_impl(
         F = jnp.concatenate([F, ic["E"]], axis=1)
         init_c, init_const = ic["init_c"], ic["init_const"][:, None]
     if k == D:  # no residual: the stacked-lag kernel
-        return _full_terms(cw, ic, Y - ybar, block, out_rows)
+        return _full_terms(cw, ic, Y - ybar, block, out_rows, n_active)
     dyn_const = cw["dyn_const"][:, None]
     obs_const = cw["obs_const"][:, None]
     mcmc = cw["mcmc"][:, None]

@@ -55,12 +55,18 @@ def _lag_rows(cw: dict[str, Array], ic: dict[str, Array] | None, k: int) -> tupl
     return G, Ha, Hb
 
 
+# Textons per group of the learner's kernel (``n_active``; 4 for stacks of at most 16):
+# groups past the real textons of a padded stack are skipped.
+_GROUP = 8
+
+
 def _full_terms(
     cw: dict[str, Array],
     ic: dict[str, Array] | None,
     Yc: Array,
     block: int,
     out_rows: int | None,
+    n_active: Array | None = None,
 ) -> tuple[Array, ...]:
     """``(dyn, obs[, init])`` of ``N_t`` full-dimensional textons on the centred frames
     ``Yc (T, D)``, each ``(N_t, T)`` (``out_rows`` rows for ``dyn`` and ``obs``, the others
@@ -68,39 +74,59 @@ def _full_terms(
     (``_init_coords``, ``None``: no ``init``) stacked along a leading texton axis.
 
     ``dyn[:, :2] = 0``, ``obs = 0`` and ``init[:, T−1] = −inf``, as in the general kernel.
+
+    ``n_active`` (a traced count, the learner's E-step): only the first ``n_active`` textons
+    are needed. The textons then go in groups of ``_GROUP`` (time blocks sized for one group,
+    ``block`` unused), and the groups past ``n_active`` are skipped: their rows hold the
+    constants alone (finite, not the textons' terms). One compiled program then serves every
+    texton count up to ``N_t`` at the cost of the real textons' terms.
     """
     T, D = Yc.shape
     n = cw["P"].shape[0]
     k = D
     dtype = Yc.dtype
     rows = jax.vmap(lambda c, i: _lag_rows(c, i, k))(cw, ic)
-    G = rows[0].reshape(n * k, 3 * D + 1)
-    if ic is not None:
-        Ha = rows[1].reshape(n * k, D + 1)
-        Hb = rows[2].reshape(n * k, 2 * D + 1)
-    W = max(min(block, T), 1)
+    c = _GROUP if n > 16 else _GROUP // 2  # textons per group
+    c = n if n_active is None or n % c else c
+    n_groups = n // c
+    if n_active is not None and c < n:
+        W = max(min(_full_block_frames(c, k, jnp.dtype(dtype).itemsize), T), 1)
+    else:
+        W = max(min(block, T), 1)
     n_blocks = -(-T // W)
     # ŷ_{−2}, ŷ_{−1} := 0 (their rows' dyn and init are discarded), and padding past T
     Yp = jnp.concatenate([jnp.zeros((2, D), dtype), Yc, jnp.zeros((n_blocks * W - T, D), dtype)])
     ones = jnp.ones((W, 1), dtype)
+    # per group: G (c·k, 3D+1), Ha (c·k, D+1), Hb (c·k, 2D+1)
+    mats = [r.reshape(n_groups, c * k, r.shape[-1]) for r in rows]
 
-    def sq_norms(M: Array, X: Array) -> Array:  # (n·k, m) × (W, m)ᵀ → (n, W) squared norms
+    def sq_norms(M: Array, X: Array) -> Array:  # (c·k, m) × (W, m)ᵀ → (c, W) squared norms
         R = lax.dot_general(M, X, (((1,), (1,)), ((), ())))
-        return jnp.sum((R * R).reshape(n, k, W), axis=1)
+        return jnp.sum((R * R).reshape(c, k, W), axis=1)
 
-    def body(i: Array, carry: tuple[Array, ...]) -> tuple[Array, ...]:
-        w0 = i * W
-        Yw = lax.dynamic_slice_in_dim(Yp, w0, W + 2, axis=0)  # ŷ_{t−2} … ŷ_t of the block
-        X = jnp.concatenate([Yw[:-2], Yw[2:], Yw[1:-1], ones], axis=1)  # rows x_t
-        out = [lax.dynamic_update_slice_in_dim(carry[0], sq_norms(G, X), w0, axis=1)]
-        if ic is not None:
-            u2 = sq_norms(Ha, X[:, 2 * D :]) + sq_norms(Hb, X[:, D:])
-            out.append(lax.dynamic_update_slice_in_dim(carry[1], u2, w0, axis=1))
-        return tuple(out)
+    def group(g: Array, sums: tuple[Array, ...]) -> tuple[Array, ...]:
+        Ms = [m[g] for m in mats]
+
+        def body(i: Array, carry: tuple[Array, ...]) -> tuple[Array, ...]:
+            w0 = i * W
+            Yw = lax.dynamic_slice_in_dim(Yp, w0, W + 2, axis=0)  # ŷ_{t−2} … ŷ_t of the block
+            X = jnp.concatenate([Yw[:-2], Yw[2:], Yw[1:-1], ones], axis=1)  # rows x_t
+            at = (jnp.int32(g * c), jnp.int32(w0))  # (the loop indices' int types differ)
+            out = [lax.dynamic_update_slice(carry[0], sq_norms(Ms[0], X), at)]
+            if ic is not None:
+                u2 = sq_norms(Ms[1], X[:, 2 * D :]) + sq_norms(Ms[2], X[:, D:])
+                out.append(lax.dynamic_update_slice(carry[1], u2, at))
+            return tuple(out)
+
+        return lax.fori_loop(0, n_blocks, body, sums)
 
     zeros = jnp.zeros((n, n_blocks * W), dtype)
-    init_carry = (zeros, zeros) if ic is not None else (zeros,)
-    sums = lax.fori_loop(0, n_blocks, body, init_carry)
+    sums0 = (zeros, zeros) if ic is not None else (zeros,)
+    if n_groups == 1:
+        sums = group(jnp.asarray(0), sums0)
+    else:
+        todo = n_groups if n_active is None else (n_active + c - 1) // c
+        sums = lax.fori_loop(0, todo, group, sums0)
     t = jnp.arange(T)
     dyn = jnp.where(t[None, :] < 2, 0.0, -0.5 * (cw["dyn_const"][:, None] + sums[0][:, :T]))
     extra = 0 if out_rows is None else out_rows - n

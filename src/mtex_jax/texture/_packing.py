@@ -99,6 +99,7 @@ def _packed_scores_impl(
     where: Array,
     n: Array,
     coefs: tuple[Array, dict[str, Array], dict[str, Array] | None] | None = None,
+    n_active: Array | None = None,
 ) -> SegmentScorer:
     """The :class:`SegmentScorer` of each clip of one packed batch (leading axis ``c``), equal
     to the per-clip :func:`segment_scores` to rounding on every segment of the clip.
@@ -107,12 +108,16 @@ def _packed_scores_impl(
     ``init`` at its last frame) are never part of a segment score; they are set to the values
     the per-clip kernel gives them (0 and ``−inf``), and the terms past a clip's end to 0
     (``init``: ``−inf``). ``coefs``: the textons' :func:`_frame_coefs` (``with_init=True``),
-    computed once for all batches (default: from this batch's frames).
+    computed once for all batches (default: from this batch's frames). ``n_active``: only
+    the first ``n_active`` textons' scores are needed (the others' are not computed for
+    full-dimensional textons: see :func:`_frame_terms_impl`).
     """
     Yb = Yflat[frames]  # (P, D): the batch's real frames end to end
     P = Yb.shape[0]
     block = _block_frames(None, textons, Yb)
-    dyn, obs, init = _frame_terms_impl(textons, Yb, min(block, P), with_init=True, coefs=coefs)
+    dyn, obs, init = _frame_terms_impl(
+        textons, Yb, min(block, P), with_init=True, coefs=coefs, n_active=n_active
+    )
     T = where.shape[-1]
     t = jnp.arange(T)
 

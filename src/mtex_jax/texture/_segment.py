@@ -350,6 +350,7 @@ def _segment_batch(
     log_durations=None,
     packing=None,
     old=None,
+    n_active=None,
 ) -> tuple[Segmentation, Array]:
     """Segmentations of the clips ``Y (S, T, D)`` of ``nf (S,)`` frames, and ``(S,)`` sums of
     the scores of the segments ``old`` from the same segment scores (0 without ``old``).
@@ -362,7 +363,11 @@ def _segment_batch(
     only (no padding), so that memory holds the ``(N_t, T)`` score arrays and the DP's
     per-block temporaries (``(tmin, N_t, N_t)`` for the transitions, ``(tmin, tmax − tmin + 1,
     N_t)`` for the durations) of ``c`` clips only. ``None``: all clips at once, laid end to end
-    with their padding (data sharded over devices along the clips)."""
+    with their padding (data sharded over devices along the clips).
+
+    ``n_active`` (with ``packing``; a traced count): the textons past the first ``n_active``
+    are padding that the transitions never enter (``log π``, ``log M`` columns ``−inf``);
+    their frame terms are skipped where the kernel allows (full-dimensional textons)."""
     if not textons.is_stacked:
         textons = jax.tree.map(lambda a: a[None], textons)
 
@@ -388,7 +393,7 @@ def _segment_batch(
     def batch(args: tuple[Array, ...]) -> tuple[Segmentation, Array]:
         frames, where, n, clip = args
         n = n.astype(nf.dtype)
-        sc = _packed_scores_impl(textons, Yflat, frames, where, n, coefs)
+        sc = _packed_scores_impl(textons, Yflat, frames, where, n, coefs, n_active)
         seg = jax.vmap(one)(sc, n)
         if old is None:
             return seg, jnp.zeros(clip.shape, Y.dtype)
