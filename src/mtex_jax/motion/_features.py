@@ -220,15 +220,7 @@ class FeatureMap(eqx.Module):
         Raises:
             ValueError: empty list, different skeletons or frame rates, non-finite values.
         """
-        if isinstance(motions, Motion):
-            motions = [motions]
-        motions = list(motions)
-        if not motions:
-            raise ValueError("FeatureMap.fit: no motions given")
-        for i, m in enumerate(motions):
-            if not isinstance(m, Motion):
-                raise TypeError(f"FeatureMap.fit: item {i} is {type(m).__name__}, not a Motion")
-        _check_compatible(motions, "FeatureMap.fit", "resample with motion.resample(fps) first")
+        motions = _fit_inputs(motions)
         return cls._fit_raws(motions, _raws(motions), const_tol, min_scale)
 
     @classmethod
@@ -241,13 +233,7 @@ class FeatureMap(eqx.Module):
         Returns:
             ``(feature map, [Y (T_s, D) as NumPy arrays])``.
         """
-        motions = list(motions)
-        if not motions:
-            raise ValueError("FeatureMap.fit: no motions given")
-        for i, m in enumerate(motions):
-            if not isinstance(m, Motion):
-                raise TypeError(f"FeatureMap.fit: item {i} is {type(m).__name__}, not a Motion")
-        _check_compatible(motions, "FeatureMap.fit", "resample with motion.resample(fps) first")
+        motions = _fit_inputs(motions)
         raws = _raws(motions)
         fm = cls._fit_raws(motions, raws, const_tol, min_scale)
         return fm, [np.asarray(_scale(fm, r)) for r in raws]
@@ -434,6 +420,19 @@ def _channel_names(sk: Skeleton, has_lp: bool) -> tuple[str, ...]:
 
 
 _BUCKET = 256
+
+
+def _fit_inputs(motions: Motion | Sequence[Motion]) -> list[Motion]:
+    """The clips of :meth:`FeatureMap.fit`, checked: a non-empty list of Motions with one
+    skeleton structure and frame rate."""
+    motions = [motions] if isinstance(motions, Motion) else list(motions)
+    if not motions:
+        raise ValueError("FeatureMap.fit: no motions given")
+    for i, m in enumerate(motions):
+        if not isinstance(m, Motion):
+            raise TypeError(f"FeatureMap.fit: item {i} is {type(m).__name__}, not a Motion")
+    _check_compatible(motions, "FeatureMap.fit", "resample with motion.resample(fps) first")
+    return motions
 
 
 def _raws(motions: list[Motion]) -> list[np.ndarray]:
