@@ -400,7 +400,9 @@ def frame_terms(
     onto all textons' ``[z_t; y_t·μ]`` at once, ``(N_t(k+1), D+1) × (D+1, block+2)`` (offsets
     folded in through a constant-1 input row), so ``Y`` is read once and the projections stay
     in cache; then one small GEMM per texton gives ``[F1; F2] z`` and fused elementwise passes
-    form the shifted sums, squares and the residual term. Exact (no approximation): equal to
+    form the shifted sums, squares and the residual term. Full-dimensional textons
+    (``k = D``, no residual) use three GEMMs per block of all textons' stacked rows with the
+    block's lagged frames instead (``_frame_terms_full``). Exact (no approximation): equal to
     the direct formulas up to rounding.
 
     Args:
