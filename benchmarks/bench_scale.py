@@ -64,15 +64,20 @@ def corpus() -> list[Any]:
 
 
 def take(n_frames: int) -> list[Any]:
+    """The first clips of :func:`corpus` up to at least ``n_frames`` frames, the last one cut.
+
+    A cut clip keeps at least ``2·tmax`` frames (a shorter one could not be segmented), so the
+    total is ``n_frames`` to ``n_frames + 2·tmax − 1``.
+    """
     out, total = [], 0
     for m in corpus():
         if total >= n_frames:
             break
-        keep = min(m.n_frames, n_frames - total)
-        if keep < 2 * CONFIG["tmax"]:  # too short to segment: stop at the previous clip
-            break
+        keep = min(m.n_frames, max(n_frames - total, 2 * int(CONFIG["tmax"])))
         out.append(m[:keep])
         total += keep
+    if total < n_frames:
+        raise ValueError(f"the corpus has {total:,} frames, fewer than {n_frames:,}")
     return out
 
 
