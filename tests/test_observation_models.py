@@ -271,10 +271,18 @@ def _numpy_duration_dp(scorer, log_M, log_pi, T, tmin, tmax, log_dur):
     return V.max(axis=1)
 
 
+@pytest.mark.parametrize("gather_max_bytes", [0, 2**40])
 @pytest.mark.parametrize(("T", "tmin", "tmax"), [(90, 3, 40), (330, 3, 300)])
-def test_duration_viterbi_long_length_ranges_equal_numpy_dp(T, tmin, tmax):
-    """Length ranges below and above the unrolled windowed maximum (``Wn`` 38 and 298) against
-    an independent numpy DP on the same segment scores."""
+def test_duration_viterbi_long_length_ranges_equal_numpy_dp(
+    T, tmin, tmax, gather_max_bytes, monkeypatch
+):
+    """Length ranges below and above the unrolled windowed maximum (``Wn`` 38 and 298), with
+    the window gathered or (``gather_max_bytes = 0``, ``Wn`` 38) the unrolled chain of
+    shifted slices, against an independent numpy DP on the same segment scores."""
+    from mtex_jax.texture import _segment
+
+    monkeypatch.setattr(_segment, "_GATHER_MAX_BYTES", gather_max_bytes)
+    jax.clear_caches()  # the choice is made when tracing: trace again with this setting
     rng = np.random.default_rng(tmax)
     texs = [_residual_texton(np.random.default_rng(s), D=4, k=2)[0] for s in (1, 2)]
     stack = stack_textons(texs)
