@@ -346,7 +346,7 @@ def run_distributed(n: int, tmp: Path) -> dict[str, Any]:
     same = all(np.array_equal(a[k], b[k]) for k in keys)
     ints = all(np.array_equal(a[k], r[k]) for k in keys if r[k].dtype.kind in "iub")
     return dict(
-        frames=n,
+        frames=sum(m.n_frames for m in take(n)),
         processes_wall_s=wall2,
         process_learn_s=[float(a["wall"]), float(b["wall"])],
         one_process_learn_s=float(r["wall"]),
