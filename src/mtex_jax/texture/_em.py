@@ -421,9 +421,7 @@ def _em(
         if callback is not None:
             callback(info)
         gain = obj_e - history[-2][1] if len(history) > 1 else np.inf
-        converged = (
-            changed <= config.relabel_tol * n_frames or gain < config.tol * n_frames
-        )
+        converged = changed <= config.relabel_tol * n_frames or gain < config.tol * n_frames
         # after a pruning the remaining textons are refitted to their new segments first
         if it == config.max_iter or (converged and n_pruned == 0):
             break
