@@ -200,12 +200,12 @@ def test_chunked_m_step_equals_per_texton_fits(observation):
         np.testing.assert_allclose(np.abs(c_got.T @ c_want), np.eye(k), atol=1e-7)
 
 
-@pytest.mark.parametrize("cap", [16, 24])
+@pytest.mark.parametrize("cap", [8, 16, 24])
 def test_e_step_skips_the_padding_textons_of_a_full_stack(cap):
     # the learner pads its stacks (copies of the last texton, never entered: log π and the
     # log M columns are -inf); with n_active the full-dimensional kernel skips the padding
-    # groups (4 textons per group up to 16, else 8). The segmentation, its score and the given
-    # segments' scores equal those of the unpadded stack.
+    # groups (2 textons per group up to 8, 4 up to 16, else 8). The segmentation, its score and
+    # the given segments' scores equal those of the unpadded stack.
     rng = np.random.default_rng(5)
     D = 6
     texs = [

@@ -55,16 +55,15 @@ def _lag_rows(cw: dict[str, Array], ic: dict[str, Array] | None, k: int) -> tupl
     return G, Ha, Hb
 
 
-# Textons per group of the learner's kernel (``n_active``): groups past the real textons of a
-# padded stack are skipped. Per texton a group of 2 costs about what one of 4 or 8 does (2.6 ms
-# per texton on a 3,968-frame batch, D = 54, 2 cores), so small stacks use groups of 2: 6
-# active textons of a stack of 8 then cost 6 textons' work, not 8.
-_GROUP = 8
-
-
 def _group_size(n: int) -> int:
-    """Textons per group for a stack of ``n`` (see ``_GROUP``)."""
-    return _GROUP if n > 16 else 4 if n > 8 else 2
+    """Textons per group for a stack of ``n``: 2 up to 8, 4 up to 16, else 8.
+
+    With ``n_active`` the groups past the real textons of a padded stack are skipped. Per
+    texton a group of 2 costs about what one of 4 or 8 does (2.6 ms per texton on a
+    3,968-frame batch, D = 54, 2 cores), so small stacks use groups of 2: 6 active textons of
+    a stack of 8 then cost 6 textons' work, not 8.
+    """
+    return 8 if n > 16 else 4 if n > 8 else 2
 
 
 def _full_terms(
