@@ -147,6 +147,7 @@ def test_learn_and_segment_commands(tmp_path, cmu_files):
     assert "textons:" in r.stdout and "[mtex learn] iter" in r.stdout
     learned = mj.load_texture(model)
     assert learned.config.min_segments == 2
+    assert learned.textons.dof is None and learned.config.dof is None  # k = 8 < D: Gaussian
     assert np.bincount(np.asarray(learned.key_pose_labels)).min() >= 2
     png = tmp_path / "timeline.png"
     r = run_cli("segment", str(model), str(cmu_files[1]), "-o", str(png))
@@ -158,6 +159,9 @@ def test_learn_and_segment_commands(tmp_path, cmu_files):
     assert r.returncode == 2 and "tmin" in r.stderr and "Traceback" not in r.stderr
     r = run_cli("learn", str(cmu_files[0]), "-o", str(model), "--min-segments", "0")
     assert r.returncode == 2 and "min_segments" in r.stderr and "Traceback" not in r.stderr
+    for bad in ("0", "-2", "nan", "four"):
+        r = run_cli("learn", str(cmu_files[0]), "-o", str(model), "--dof", bad)
+        assert r.returncode == 2 and "--dof" in r.stderr and "Traceback" not in r.stderr
     r = run_cli("segment", str(tmp_path / "absent.npz"), str(cmu_files[0]))
     assert r.returncode == 2 and "no such file" in r.stderr
 

@@ -153,11 +153,13 @@ def test_row_chunks_hold_every_row_once_with_its_label(labels, extra):
     assert np.all(grp[n:] == -1)
 
 
-@pytest.mark.parametrize("observation", ["paper", "full"])
-def test_chunked_m_step_equals_per_texton_fits(observation):
+@pytest.mark.parametrize(("observation", "dof"), [("paper", None), ("full", None), ("full", 4.0)])
+def test_chunked_m_step_equals_per_texton_fits(observation, dof):
     """The M-step's rows go in per-texton chunks of _CHUNK_ROWS (36 rows: several chunks per
     texton, padding rows and empty chunks besides): each texton equals ``fit_texton`` on its
-    own segments (a mask per sequence), the independent per-texton path."""
+    own segments (a mask per sequence), the independent per-texton path; with Student-t
+    innovations (``dof``) the IRLS steps too (fit_texton's IRLS is checked against numpy in
+    test_student)."""
     rng = np.random.default_rng(11)
     D = 5
     k = D if observation == "full" else 2
@@ -177,17 +179,20 @@ def test_chunked_m_step_equals_per_texton_fits(observation):
     padded[:n_real] = rows
     labels, groups = _row_chunks(rows[:, 3], 16)  # the real rows only, 16 chunks
     assert np.bincount(labels[groups[:, 0] >= 0]).min() >= 2  # several chunks per texton
-    opts = _SolveOptions.make(1e-6, 1e-6, None, 4.0, observation, 1e-6)
+    opts = _SolveOptions.make(1e-6, 1e-6, None, 4.0, observation, 1e-6, dof=dof)
     chunks = (jnp.asarray(labels), jnp.asarray(groups))
     got = _fit_all(jnp.asarray(Y), jnp.asarray(padded), chunks, 3, 14, k, 1e-6, opts)
+    assert got.dof == dof
     for i in range(3):
         mask = np.full((S, T), -1)
         for r, (s, b, n, lab) in enumerate(rows):
             if lab == i:
                 mask[s, b : b + n] = r
-        want = fit_texton(jnp.asarray(Y), jnp.asarray(mask), state_dim=k, observation=observation)
+        want = fit_texton(
+            jnp.asarray(Y), jnp.asarray(mask), state_dim=k, observation=observation, dof=dof
+        )
         one = jax.tree.map(lambda a, i=i: a[i], got)
-        for name in ("mu", "A1", "A2", "d", "sigma2"):
+        for name in ("mu", "A1", "A2", "d", "sigma2", "B", "m0", "S0"):
             np.testing.assert_allclose(
                 np.asarray(getattr(one, name)),
                 np.asarray(getattr(want, name)),

@@ -60,6 +60,7 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         observation=args.observation,
         durations=args.durations,
         selection=args.selection,
+        dof=args.dof,
     )
     where = f"process {pid} of {n_proc}: " if args.distributed else ""
     print(
@@ -255,6 +256,23 @@ def _cmd_choreograph(args: argparse.Namespace) -> int:
     return 0
 
 
+def _dof_arg(text: str) -> float | None:
+    """``--dof``: a number > 0, or ``gaussian``."""
+    if text.strip().lower() == "gaussian":
+        return None
+    try:
+        nu = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a number > 0 or 'gaussian', got {text!r}"
+        ) from None
+    if not np.isfinite(nu) or nu <= 0:
+        raise argparse.ArgumentTypeError(
+            f"expected a finite number > 0 or 'gaussian', got {text!r}"
+        )
+    return nu
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the Motion Texture commands to the ``mtex`` sub-command parsers."""
     from ._distributed import RECIPE, add_arguments
@@ -282,6 +300,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=("residual", "full", "paper"),
         default="residual",
         help="observation model of the textons (default residual; paper = MT-11)",
+    )
+    s.add_argument(
+        "--dof",
+        type=_dof_arg,
+        default=4.0,
+        metavar="NU|gaussian",
+        help="innovations of full-dimensional textons: Student-t with NU degrees of freedom "
+        "(default 4) or gaussian (the paper)",
     )
     s.add_argument(
         "--durations",

@@ -197,13 +197,51 @@ def _psd_cholesky(M: Array, floor: Array | float) -> Array:
     return jnp.where(jnp.all(jnp.isfinite(L)), L, jnp.where(jnp.all(jnp.isfinite(L2)), L2, L3))
 
 
-def _gauss_logpdf_chol(r: Array, L: Array) -> Array:
-    """``log N(r; 0, L Lᵀ)`` for residual vectors ``r (..., n)``."""
+def _gauss_logpdf_chol(r: Array, L: Array, dof: float | None = None) -> Array:
+    """``log N(r; 0, L Lᵀ)`` for residual vectors ``r (..., n)``; with ``dof``, the
+    Student-t density of :func:`_innovation_logpdf` with scale matrix ``L Lᵀ``."""
     n = L.shape[-1]
     u = jsl.solve_triangular(L, jnp.moveaxis(r, -1, 0).reshape(n, -1), lower=True)
     maha = jnp.sum(u * u, axis=0).reshape(r.shape[:-1])
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(L)))
-    return -0.5 * (n * _LOG_2PI + logdet + maha)
+    return _innovation_logpdf(maha, logdet, n, dof)
+
+
+def _innovation_logpdf(maha: Array, logdet: Array, n: int, dof: float | None) -> Array:
+    """Log-density of an ``n``-dimensional innovation from its squared Mahalanobis norm
+    ``q = rᵀ Q⁻¹ r`` and ``log|Q|``.
+
+    .. code-block:: text
+
+        Gaussian (dof None):  −½ (n log 2π + log|Q| + q)
+        Student-t (dof ν):    log Γ((ν+n)/2) − log Γ(ν/2) − (n/2) log(νπ) − ½ log|Q|
+                              − ((ν+n)/2) log(1 + q/ν)
+
+    (``Q`` is the t's scale matrix; its covariance is ``ν/(ν−2) Q`` for ``ν > 2``.)
+    """
+    if dof is None:
+        return -0.5 * (n * _LOG_2PI + logdet + maha)
+    nu = float(dof)
+    const = math.lgamma((nu + n) / 2) - math.lgamma(nu / 2) - 0.5 * n * math.log(nu * math.pi)
+    return const - 0.5 * logdet - 0.5 * (nu + n) * jnp.log1p(maha / nu)
+
+
+def _student_weights(maha: Array, n: int, dof: float) -> Array:
+    """IRLS / EM weights ``w = (ν + n) / (ν + q)`` of Student-t innovations: the posterior
+    mean of each innovation's precision scale (the E-step of the t as a scale mixture of
+    Gaussians)."""
+    return (dof + n) / (dof + maha)
+
+
+def _check_dof(dof: Any) -> float | None:
+    """``None`` (Gaussian innovations) or a degrees-of-freedom ``ν > 0`` as a float."""
+    if dof is None:
+        return None
+    if isinstance(dof, bool) or not isinstance(dof, int | float | np.integer | np.floating):
+        raise ValueError(f"dof must be None or a number > 0, got {dof!r}")
+    if not math.isfinite(float(dof)) or float(dof) <= 0:
+        raise ValueError(f"dof must be None or a finite number > 0, got {dof!r}")
+    return float(dof)
 
 
 def _check_positive_int(name: str, value: Any) -> int:

@@ -33,7 +33,7 @@ from jax.experimental import multihost_utils
 
 from ..motion import FeatureMap, Motion, Skeleton
 from ._config import LearnConfig
-from ._em import _em, _Runner
+from ._em import _em, _Runner, _warm_start
 from ._init import Segs, greedy_init
 from ._labels import _capacity, _transitions
 from ._learn import (
@@ -44,7 +44,7 @@ from ._learn import (
     _resolve_state_dim,
 )
 from ._model import MotionTexture
-from ._mstep import _dynamics_pass, _frame_pass, _solve
+from ._mstep import _dynamics_pass, _frame_pass, _solve, _weighted_pass
 from ._segment import _check_lengths
 from ._texton import Texton
 
@@ -242,7 +242,11 @@ class _DistRunner(_Runner):
         return rows
 
     def m_step(
-        self, segs: Segs, n_textons: int, rows_valid: np.ndarray | None = None
+        self,
+        segs: Segs,
+        n_textons: int,
+        rows_valid: np.ndarray | None = None,
+        prev: Texton | None = None,
     ) -> tuple[Texton, np.ndarray, np.ndarray]:
         local = self._local_rows(segs)
         n = len(local)
@@ -265,7 +269,17 @@ class _DistRunner(_Runner):
             float(self.config.sigma2_floor),
             self.tmax,
         )
-        tex = _solve(sub, _allreduce(ds), self.opts)
+        # Student-t textons: the reweightings of the single-process M-step (from the Gaussian
+        # fit, or one from the E-step's textons), each one all-reduce of the weighted sums
+        warm = _warm_start(prev, n_tex, self.opts)
+        if warm is None:
+            tex = _solve(sub, _allreduce(ds), self.opts)
+            steps = self.opts.irls_steps if self.opts.dof is not None else 0
+        else:
+            tex, steps = warm, 1
+        for _ in range(steps):
+            ds = _weighted_pass(self.Y, rows_j, valid, sub, tex, self.tmax)
+            tex = _solve(sub, _allreduce(ds), self.opts)
         M, pi = _transitions(segs, n_textons, self.config.pseudo_count)
         return tex, M, pi
 

@@ -114,6 +114,7 @@ class _Runner:
             config.init_prior_weight,
             config.observation,
             config.sigma2_floor,
+            dof=config.texton_dof,
         )
         self.tmax = self.T if config.tmax is None else config.tmax
         self.use_durations = config.durations == "lognormal" and config.tmax is not None
@@ -144,27 +145,35 @@ class _Runner:
         return jax.device_put(a, self.sharding)
 
     def m_step(
-        self, segs: Segs, n_textons: int, rows_valid: np.ndarray | None = None
+        self,
+        segs: Segs,
+        n_textons: int,
+        rows_valid: np.ndarray | None = None,
+        prev: Texton | None = None,
     ) -> tuple[Texton, np.ndarray, np.ndarray]:
         """Fit all textons; the stack is padded to a power of two (slots past ``n_textons``
         are unused) so that a changing number of textons recompiles rarely. ``rows_valid``
         (``(len(segs),)`` bools): only those rows are fitted (the others keep their place, so
-        the padded row count, and with it the compiled program, stays)."""
+        the padded row count, and with it the compiled program, stays). ``prev``: the
+        textons whose E-step gave ``segs`` (indexed by its labels), the start of the
+        Student-t reweighting (:func:`~._mstep._fit_all_impl`; unused for Gaussian ones)."""
         n = len(segs)
         cap = self._cap("rows", _capacity(n))
         rows = np.zeros((cap, 4), dtype=np.int64)
         rows[:n] = segs
         chunks = self._m_chunks(segs, rows_valid)
         assert self.config.state_dim is not None  # resolved by learn before EM
+        n_cap = self._cap("textons", max(_capacity(n_textons), self.min_cap, self.m_min_cap))
         tex = _fit_all(
             self.Y,
             jax.device_put(rows),
             chunks,
-            self._cap("textons", max(_capacity(n_textons), self.min_cap, self.m_min_cap)),
+            n_cap,
             self.tmax,
             self.config.state_dim,
             float(self.config.sigma2_floor),
             self.opts,
+            _warm_start(prev, n_cap, self.opts),
         )
         M, pi = _transitions(segs, n_textons, self.config.pseudo_count)
         return tex, M, pi
@@ -319,6 +328,13 @@ class _Runner:
         )
 
 
+def _warm_start(prev: Texton | None, cap: int, opts: _SolveOptions) -> Texton | None:
+    """``prev`` padded to ``cap`` textons (copies of its last), for Student-t M-steps only."""
+    if opts.dof is None or prev is None or prev.dof != opts.dof:
+        return None
+    return _take(prev, np.minimum(np.arange(cap), prev.n_textons - 1))
+
+
 def _fit_kept(
     run: _Runner, segs: Segs, n_t: int, few: np.ndarray
 ) -> tuple[Texton, np.ndarray, np.ndarray, np.ndarray | None, float, Segs, float]:
@@ -374,6 +390,7 @@ def _em(
     segs, _ = _relabel(segs)
     history: list[tuple[float, float]] = []
     best: tuple[float, Texton, np.ndarray, np.ndarray, Segs, np.ndarray | None] | None = None
+    prev: Texton | None = None  # the textons of the E-step that gave segs (by its labels)
     for it in range(config.max_iter + 1):
         r = run
         n_t = int(segs[:, 3].max()) + 1
@@ -382,7 +399,7 @@ def _em(
             tex, M, pi, log_d, obj_m, new_segs, obj_e = _fit_kept(r, segs, n_t, few)
             n_pruned = few.size
         else:
-            tex, M, pi = r.m_step(segs, n_t)
+            tex, M, pi = r.m_step(segs, n_t, prev=prev)
             log_d = r.durations(segs, n_t)
             new_segs, obj_e, obj_m = r.e_step_scored(tex, M, pi, log_d, segs)
             obj_m += r.path_terms(M, pi, segs, log_d)
@@ -425,7 +442,8 @@ def _em(
         # after a pruning the remaining textons are refitted to their new segments first
         if it == config.max_iter or (converged and n_pruned == 0):
             break
-        segs, _ = _relabel(new_segs)
+        segs, used = _relabel(new_segs)
+        prev = _take(tex, used)
 
     assert best is not None
     _, tex, M, pi, final_segs, log_d = best

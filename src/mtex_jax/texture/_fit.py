@@ -6,11 +6,20 @@ from __future__ import annotations
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array, ArrayLike
 
-from ._checks import _check_positive, _check_state_dim, _psd_cholesky, _sym
+from ._checks import (
+    _check_dof,
+    _check_positive,
+    _check_positive_int,
+    _check_state_dim,
+    _psd_cholesky,
+    _student_weights,
+    _sym,
+)
 from ._stats import (
     DynamicsStats,
     Subspace,
@@ -119,6 +128,8 @@ class _SolveOptions(eqx.Module):
     init_prior_weight: float = eqx.field(static=True)
     observation: str = eqx.field(static=True, default="paper")
     sigma2_floor: float = eqx.field(static=True, default=1e-6)
+    dof: float | None = eqx.field(static=True, default=None)
+    irls_steps: int = eqx.field(static=True, default=10)
 
     @staticmethod
     def make(
@@ -128,10 +139,17 @@ class _SolveOptions(eqx.Module):
         init_prior_weight: Any,
         observation: Any = "paper",
         sigma2_floor: Any = 1e-6,
+        dof: Any = None,
+        irls_steps: Any = 10,
     ) -> _SolveOptions:
         if observation not in OBSERVATION_MODELS:
             raise ValueError(
                 f"observation must be one of {OBSERVATION_MODELS}, got {observation!r}"
+            )
+        dof = _check_dof(dof)
+        if dof is not None and observation != "full":
+            raise ValueError(
+                f"Student-t innovations (dof={dof:g}) need observation='full', got {observation!r}"
             )
         return _SolveOptions(
             ridge=_check_positive("ridge", ridge, allow_zero=True),
@@ -142,6 +160,8 @@ class _SolveOptions(eqx.Module):
             ),
             observation=observation,
             sigma2_floor=_check_positive("sigma2_floor", sigma2_floor),
+            dof=dof,
+            irls_steps=_check_positive_int("irls_steps", irls_steps),
         )
 
 
@@ -252,6 +272,7 @@ def _texton_from_stats_impl(
         res_a=res_a,
         res_s2=res_s2,
         observation=opts.observation,
+        dof=opts.dof,
     )
 
 
@@ -274,6 +295,7 @@ def fit_texton(
     rho_max: float | None = None,
     init_prior_weight: float = 4.0,
     observation: str = "paper",
+    dof: float | None = None,
 ) -> Texton:
     """Closed-form fit of one texton on one or several segments (SPEC §2; MT App. B).
 
@@ -299,6 +321,13 @@ def fit_texton(
         init_prior_weight: shrinkage pseudo-count of the initial-state Gaussian.
         observation: the observation model, ``"paper"``, ``"residual"`` or ``"full"``
             (``"full"`` needs ``state_dim = D``); see :class:`Texton`.
+        dof: ``None`` (Gaussian innovations) or the degrees of freedom ``ν > 0`` of Student-t
+            innovations (``observation="full"`` only). The t is fitted by 10 steps of
+            iteratively reweighted least squares from the Gaussian fit: frame ``t``'s
+            dynamics term gets the weight ``w_t = (ν + k) / (ν + q_t)`` (``q_t`` its squared
+            Mahalanobis innovation under the current fit) and the weighted closed form
+            above is solved again, with ``Σ w`` in place of ``N`` (the parameter-expanded EM
+            of the t, whose fixed point is the maximum-likelihood fit, where ``Σ w = N``).
 
     Returns:
         A single :class:`Texton` in Y's floating dtype. Differentiable w.r.t. ``Y`` (the
@@ -312,7 +341,9 @@ def fit_texton(
     Y, mask = _check_fit_inputs(Y, mask)
     k = _check_state_dim(state_dim, int(Y.shape[-1]), tuple(Y.shape))
     floor = _check_positive("sigma2_floor", sigma2_floor)
-    opts = _SolveOptions.make(ridge, q_floor, rho_max, init_prior_weight, observation, floor)
+    opts = _SolveOptions.make(
+        ridge, q_floor, rho_max, init_prior_weight, observation, floor, dof=dof
+    )
     if observation == "full" and k != int(Y.shape[-1]):
         raise ValueError(f"observation='full' needs state_dim = D = {Y.shape[-1]}, got {k}")
     return _fit_texton_jit(Y, mask, k, floor, opts)
@@ -324,7 +355,31 @@ def _fit_texton_impl(
     fs = _frame_stats_impl(Y, mask)
     sub = _subspace_impl(fs, k, sigma2_floor)
     ds = _dynamics_stats_impl(Y, mask, sub)
-    return _texton_from_stats_impl(sub, ds, opts)
+    tex = _texton_from_stats_impl(sub, ds, opts)
+    dof = opts.dof
+    if dof is None:
+        return tex
+
+    def irls(_: Any, tex: Texton) -> Texton:
+        w = _student_frame_weights(tex, Y, dof)
+        return _texton_from_stats_impl(sub, _dynamics_stats_impl(Y, mask, sub, weights=w), opts)
+
+    return jax.lax.fori_loop(0, opts.irls_steps, irls, tex)
+
+
+def _student_frame_weights(tex: Texton, Y: Array, dof: float) -> Array:
+    """Per-frame weights ``(…, T)`` of a Student-t texton on frames ``Y (…, T, D)``:
+    ``w_t = (ν + k) / (ν + q_t)``, ``q_t = ‖B⁻¹(x_t − A1 x_{t−1} − A2 x_{t−2} − d)‖²``,
+    ``x = Cᵀ(y − μ)``; 1 on the first two frames (they have no dynamics term). Only the
+    frames of valid triples use them (:func:`~._stats._dynamics_stats_seq`)."""
+    dtype = Y.dtype
+    k = tex.A1.shape[-1]
+    X = (Y - tex.mu.astype(dtype)) @ tex.C.astype(dtype)
+    E = X[..., 2:, :] - X[..., 1:-1, :] @ tex.A1.T - X[..., :-2, :] @ tex.A2.T - tex.d
+    U = jsl.solve_triangular(tex.B, jnp.moveaxis(E, -1, 0).reshape(k, -1), lower=True)
+    q = jnp.sum(U * U, axis=0).reshape(E.shape[:-1])
+    w = _student_weights(q, k, dof)
+    return jnp.concatenate([jnp.ones((*w.shape[:-1], 2), dtype), w.astype(dtype)], axis=-1)
 
 
 _fit_texton_traced = eqx.debug.assert_max_traces(_fit_texton_impl, max_traces=None)

@@ -270,7 +270,7 @@ def _frame_terms_impl(
         F = jnp.concatenate([F, ic["E"]], axis=1)
         init_c, init_const = ic["init_c"], ic["init_const"][:, None]
     if k == D:  # no residual: the stacked-lag kernel
-        return _full_terms(cw, ic, Y - ybar, block, out_rows, n_active)
+        return _full_terms(cw, ic, Y - ybar, block, out_rows, n_active, textons.dof)
     dyn_const = cw["dyn_const"][:, None]
     obs_const = cw["obs_const"][:, None]
     mcmc = cw["mcmc"][:, None]

@@ -30,6 +30,8 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array
 
+from ._checks import _LOG_2PI, _innovation_logpdf
+
 # Target size of one time block's three GEMM outputs (all textons), in bytes.
 _FULL_BLOCK_BYTES = 8 * 2**20
 
@@ -73,6 +75,7 @@ def _full_terms(
     block: int,
     out_rows: int | None,
     n_active: Array | None = None,
+    dof: float | None = None,
 ) -> tuple[Array, ...]:
     """``(dyn, obs[, init])`` of ``N_t`` full-dimensional textons on the centred frames
     ``Yc (T, D)``, each ``(N_t, T)`` (``out_rows`` rows for ``dyn`` and ``obs``, the others
@@ -89,6 +92,9 @@ def _full_terms(
     are needed, and the groups past them are skipped: their rows hold the constants alone
     (finite, not the textons' terms). One compiled program then serves every texton count up
     to ``N_t`` at the cost of the real textons' terms (rounded up to a group).
+
+    ``dof`` (static): Student-t dynamics innovations; ``dyn`` is then the t log-density of
+    the same squared norm ``‖w_t‖²`` (:func:`~._checks._innovation_logpdf`).
     """
     T, D = Yc.shape
     n = cw["P"].shape[0]
@@ -137,7 +143,8 @@ def _full_terms(
         todo = n_groups if n_active is None else (n_active + c - 1) // c
         sums = lax.fori_loop(0, todo, group, sums0)
     t = jnp.arange(T)
-    dyn = jnp.where(t[None, :] < 2, 0.0, -0.5 * (cw["dyn_const"][:, None] + sums[0][:, :T]))
+    logdet = cw["dyn_const"][:, None] - k * _LOG_2PI
+    dyn = jnp.where(t[None, :] < 2, 0.0, _innovation_logpdf(sums[0][:, :T], logdet, k, dof))
     extra = 0 if out_rows is None else out_rows - n
     dyn = jnp.concatenate([dyn, jnp.zeros((extra, T), dtype)]) if extra else dyn
     obs = jnp.zeros_like(dyn)

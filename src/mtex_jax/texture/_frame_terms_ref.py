@@ -17,6 +17,7 @@ from ._checks import (
     _check_positive_int,
     _error_if_nonfinite,
     _float_dtype,
+    _innovation_logpdf,
     _psd_cholesky,
 )
 from ._texton import Texton, _check_texton
@@ -44,7 +45,7 @@ def _terms_single(
         logdet_q = 2.0 * jnp.sum(jnp.log(jnp.diagonal(tex.B)))
         if T >= 3:
             W = X[2:] @ Binv.T + X[1:-1] @ G1.T + X[:-2] @ G2.T - Binv @ tex.d
-            dyn_t = -0.5 * (k * _LOG_2PI + logdet_q + jnp.sum(W * W, axis=1))
+            dyn_t = _innovation_logpdf(jnp.sum(W * W, axis=1), logdet_q, k, tex.dof)
             dyn = jnp.concatenate([jnp.zeros((2,), dtype), dyn_t])
         else:
             dyn = jnp.zeros((T,), dtype)

@@ -93,7 +93,18 @@ def _check_data(
 
 
 def _resolve_state_dim(ys: list[np.ndarray], config: LearnConfig, verbose: bool) -> LearnConfig:
-    """The config with a concrete ``state_dim``: ``D`` for ``"full"``, else by BIC if unset."""
+    """The config with a concrete ``state_dim`` (``D`` for ``"full"``, else by BIC if unset)
+    and ``dof=None`` unless the textons are full-dimensional (``LearnConfig.dof``)."""
+    cfg = _resolve_k(ys, config, verbose)
+    if cfg.dof != cfg.texton_dof:
+        cfg = dataclasses.replace(cfg, dof=cfg.texton_dof)
+    if verbose:
+        inn = "Gaussian" if cfg.dof is None else f"Student-t, {cfg.dof:g} degrees of freedom"
+        print(f"[mtex learn] dynamics innovations: {inn}", flush=True)
+    return cfg
+
+
+def _resolve_k(ys: list[np.ndarray], config: LearnConfig, verbose: bool) -> LearnConfig:
     D = ys[0].shape[1]
     if config.observation == "full":
         return dataclasses.replace(config, state_dim=D)

@@ -38,7 +38,8 @@ def segment_log_likelihood(texton: Texton, Y_segment: ArrayLike) -> Float[Array,
                        + Σ_{t=b..e}   log N(r_t; 0, σ² I_{D−k})
 
     (for a ``"residual"`` texton the residual terms of ``t >= b+2`` are
-    ``log N(r_t − a₁ r_{t−1} − a₂ r_{t−2}; 0, s_r² I_{D−k})`` instead) with
+    ``log N(r_t − a₁ r_{t−1} − a₂ r_{t−2}; 0, s_r² I_{D−k})`` instead; with Student-t
+    innovations, ``Texton.dof = ν``, the dynamics terms are ``log t_ν(x_t; …, Q)``) with
     ``x_t = Cᵀ(y_t − μ)`` and the explicit residual ``r_t = (y_t − μ) − C x_t``
     (triangular solves with ``B`` and ``chol(S0)``). This is the reference for
     :class:`SegmentScorer`; it handles one texton (``jax.vmap`` it for a stack).
@@ -73,7 +74,7 @@ def _segment_ll_impl(tex: Texton, Y: Array) -> Array:
     ll_dyn = jnp.asarray(0.0, dtype)
     if Y.shape[0] > 2:
         res = X[2:] - X[1:-1] @ tex.A1.T - X[:-2] @ tex.A2.T - tex.d
-        ll_dyn = jnp.sum(_gauss_logpdf_chol(res, tex.B))
+        ll_dyn = jnp.sum(_gauss_logpdf_chol(res, tex.B, tex.dof))
         if tex.observation == "residual" and D > k:
             # frames 3.. of the residual by its AR(2) instead of white noise
             r2 = jnp.sum(Rres * Rres, axis=1)[2:]
@@ -119,6 +120,11 @@ def exact_log_likelihood(texton: Texton, Y_segment: ArrayLike) -> Float[Array, "
         Scalar log-likelihood.
     """
     texton = _check_texton("texton", texton, stacked=False)
+    if texton.dof is not None:
+        raise ValueError(
+            "exact_log_likelihood is the Kalman likelihood of Gaussian textons; this texton "
+            f"has Student-t innovations (dof={texton.dof:g}): use segment_log_likelihood"
+        )
     if texton.observation == "residual":
         raise ValueError(
             "exact_log_likelihood is the Kalman likelihood of the paper's model (white "

@@ -160,7 +160,7 @@ class MotionTexture(eqx.Module):
         arrays: dict[str, Any] = {
             f"texton.{f.name}": np.asarray(getattr(self.textons, f.name))
             for f in dataclasses.fields(self.textons)
-            if f.name != "observation"
+            if f.name not in ("observation", "dof")
         }
         arrays.update(
             M=np.asarray(self.M),
@@ -179,9 +179,12 @@ class MotionTexture(eqx.Module):
             "config": self.config.to_json_dict(),
             "threshold": self.threshold,
             "texton_fields": [
-                f.name for f in dataclasses.fields(self.textons) if f.name != "observation"
+                f.name
+                for f in dataclasses.fields(self.textons)
+                if f.name not in ("observation", "dof")
             ],
             "observation": self.textons.observation,
+            "dof": self.textons.dof,
             "feature_map": None,
         }
         if self.feature_map is not None:
@@ -217,12 +220,13 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
             raise ValueError(f"missing arrays {['texton.' + f for f in missing]}")
         observation = meta.get("observation", "paper")  # files before the models: paper
         tf = {f: jnp.asarray(arrays[f"texton.{f}"]) for f in fields}
-        textons = Texton(**tf, observation=observation)  # no res_*: the paper's residual
+        # no res_*: the paper's residual; no dof: Gaussian innovations
+        textons = Texton(**tf, observation=observation, dof=meta.get("dof"))
         fm = None
         if meta.get("feature_map") is not None:
             fa = {k.split(".", 1)[1]: v for k, v in arrays.items() if k.startswith("feature_map.")}
             fm = FeatureMap.from_arrays_json(fa, meta["feature_map"])
-        old = {"observation": "paper", "durations": "flat", "selection": "none"}
+        old = {"observation": "paper", "durations": "flat", "selection": "none", "dof": None}
         cfg_d = {**old, **meta["config"]}
         if cfg_d.get("bic_thresholds") is not None:
             cfg_d["bic_thresholds"] = tuple(cfg_d["bic_thresholds"])
@@ -254,6 +258,8 @@ def texture_summary(tex: MotionTexture) -> str:
     lines = [
         f"textons: {tex.n_textons}   segments: {len(np.asarray(tex.segments))}   "
         f"state dim: {tex.config.state_dim}   D: {tex.obs_dim}   threshold: {tex.threshold:.4g}",
+        f"observation model: {tex.textons.observation}   innovations: "
+        + ("Gaussian" if tex.textons.dof is None else f"Student-t, {tex.textons.dof:g} dof"),
         f"segment lengths (frames): min {int(st[:, 3][st[:, 0] > 0].min())}  "
         f"mean {np.asarray(tex.segment_lengths).mean():.1f}  max {int(st[:, 4].max())}  "
         f"(tmin {tex.config.tmin}, tmax {tex.config.tmax})",

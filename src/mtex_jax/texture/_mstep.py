@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ._fit import _SolveOptions, _texton_from_stats_impl
+from ._fit import _SolveOptions, _student_frame_weights, _texton_from_stats_impl
 from ._stats import (
     DynamicsStats,
     FrameStats,
@@ -34,6 +34,7 @@ def _fit_all_impl(
     k: int,
     floor: float,
     opts,
+    prev: Texton | None = None,
 ) -> Texton:
     """M-step: fit every texton on all of its segments (SPEC §2), from summed statistics.
 
@@ -47,6 +48,14 @@ def _fit_all_impl(
     added into their texton's: memory holds one chunk's slabs, and the work is
     ``O(total frames)``, not ``O(N_t × frames)``. (Per-segment GEMMs batched over the
     segments of mixed textons, the earlier scheme, ran at a fraction of the GEMM rate.)
+
+    With Student-t textons (``opts.dof``) each frame's dynamics term is weighted by its t
+    weight under a previous fit (IRLS, as in :func:`~._fit.fit_texton`). Without ``prev``:
+    the Gaussian fit, then ``opts.irls_steps`` reweightings. With ``prev`` (the textons of the
+    E-step that made the segments, stacked as the labels index them; EM's later iterations):
+    one reweighting from ``prev``, the EM of the t as a scale mixture (its E-step: the weights;
+    its M-step: the weighted closed form), so that EM's iterations carry the IRLS and an
+    M-step costs one weighted pass, not ``opts.irls_steps``.
     """
     T = Y.shape[1]
     D = Y.shape[2]
@@ -88,8 +97,30 @@ def _fit_all_impl(
         # one segment starts per slab
         return _dynamics_stats_impl(frames, ids, jax.tree.map(lambda a: a[i], sub), G)
 
-    ds = summed(pass2)
-    return jax.lax.map(lambda a: _texton_from_stats_impl(a[0], a[1], opts), (sub, ds))
+    dof = opts.dof
+    if dof is None or prev is None:
+        ds = summed(pass2)
+        tex = jax.lax.map(lambda a: _texton_from_stats_impl(a[0], a[1], opts), (sub, ds))
+        if dof is None:
+            return tex
+        steps = opts.irls_steps
+    else:
+        tex, steps = prev, 1
+
+    def irls(_: Array, tex: Texton) -> Texton:
+        """One reweighting of the Student-t fit (``fit_texton``'s IRLS), every texton."""
+
+        def pass2w(i: Array, g: Array) -> Any:
+            frames, ids = slab(g)
+            w = _student_frame_weights(tex[i], frames, dof)
+            return _dynamics_stats_impl(
+                frames, ids, jax.tree.map(lambda a: a[i], sub), G, weights=w
+            )
+
+        ds = summed(pass2w)
+        return jax.lax.map(lambda a: _texton_from_stats_impl(a[0], a[1], opts), (sub, ds))
+
+    return jax.lax.fori_loop(0, steps, irls, tex)
 
 
 _fit_all = eqx.filter_jit(_fit_all_impl)
@@ -135,6 +166,24 @@ def _dynamics_pass(
     sub_seg = jax.tree.map(lambda a: a[jnp.clip(rows[:, 3], 0, n_tex - 1)], sub)
     ds = jax.vmap(_dynamics_stats_impl)(G, ids, sub_seg)
     return sub, jax.tree.map(lambda a: _per_texton(a, rows, valid, n_tex), ds)
+
+
+@eqx.filter_jit
+def _weighted_pass(
+    Y: Array, rows: Array, valid: Array, sub: Subspace, tex: Texton, width: int
+) -> DynamicsStats:
+    """One IRLS step of Student-t textons on this process's segments: pass 2 with every
+    frame's dynamics term weighted under the current fit ``tex`` (as in ``_fit_all``),
+    summed per texton."""
+    n_tex = sub.mu.shape[0]
+    G, ids = _slabs(Y, rows, valid, width)
+    lab = jnp.clip(rows[:, 3], 0, n_tex - 1)
+    sub_seg = jax.tree.map(lambda a: a[lab], sub)
+    dof = tex.dof
+    assert dof is not None
+    w = jax.vmap(lambda t, g: _student_frame_weights(t, g, dof))(tex[lab], G)
+    ds = jax.vmap(lambda g, i, s, ww: _dynamics_stats_impl(g, i, s, weights=ww))(G, ids, sub_seg, w)
+    return jax.tree.map(lambda a: _per_texton(a, rows, valid, n_tex), ds)
 
 
 @eqx.filter_jit

@@ -89,6 +89,9 @@ def _sample_impl(
     else:
         x1, x2 = xs[0].astype(dtype), xs[1].astype(dtype)
     V = jax.random.normal(k_dyn, (length - 2, k), dtype)
+    if tex.dof is not None:  # Student-t innovations: B v / √g, g ~ Gamma(ν/2, rate ν/2)
+        g = jax.random.gamma(jax.random.fold_in(k_dyn, 1), tex.dof / 2, (length - 2,), dtype)
+        V = V / jnp.sqrt(g / (tex.dof / 2))[:, None]
 
     def step(carry: tuple[Array, Array], v: Array) -> tuple[tuple[Array, Array], Array]:
         xm1, xm2 = carry

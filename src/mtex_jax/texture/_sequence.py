@@ -44,7 +44,7 @@ from ..motion import Motion
 from ._keyposes import _instances, _successor
 from ._model import MotionTexture
 from ._paths import random_path
-from ._synthesis import Weighting, _constrained, _standard_normal
+from ._synthesis import Weighting, _constrained, _innovations
 from ._texton import Texton
 
 _PAD_TEXTONS = 8  # the path axis is padded to a multiple of this (compilation sharing)
@@ -258,7 +258,7 @@ def _synthesize_path(
     if key is None:
         v = jnp.zeros((n_pad, l_pad - 2, k), dt)
     else:
-        v = _standard_normal(key, (n_pad, l_pad - 2, k), dt)
+        v = _innovations(key, (n_pad, l_pad - 2, k), dt, tex.dof)
     out = _path_core_jit(
         tex,
         jnp.asarray(lab_p),

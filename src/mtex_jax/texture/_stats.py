@@ -247,14 +247,20 @@ def _valid_terms(ids: Int[Array, " T"]) -> tuple[Array, Array, Array]:
 
 
 def _dynamics_stats_seq(
-    Y: Array, ids: Array, mu: Array, C: Array, max_starts: int | None = None
+    Y: Array,
+    ids: Array,
+    mu: Array,
+    C: Array,
+    max_starts: int | None = None,
+    weights: Array | None = None,
 ) -> DynamicsStats:
     """Pass-2 sums of one sequence. The pair sums follow from the triple and start sums: the
     pairs ``(t−1, t)`` of a segment ``[b, e]`` are its triples' (``t >= b + 2``) and its start
     pair ``(b, b+1)``, so ``Σ p pᵀ = R (Σ z zᵀ)[:2k, :2k] Rᵀ + Σ s sᵀ`` with ``R`` swapping the
     two ``k``-blocks (one ``(2k)²`` GEMM over the frames fewer). ``max_starts`` (static): at
     most that many segments start in ``Y``; the start sums then use only those rows (another
-    GEMM over the frames fewer)."""
+    GEMM over the frames fewer). ``weights (T,)``: the triple at ``t`` counts ``weights[t]``
+    times (``n3`` becomes ``Σ w``; the Student-t M-step), the starts once."""
     T = Y.shape[0]
     k = C.shape[1]
     dtype = Y.dtype
@@ -266,6 +272,8 @@ def _dynamics_stats_seq(
     if T >= 3:
         Z = jnp.concatenate([X[2:], X[1:-1], X[:-2]], axis=1)
         w3 = triple[2:].astype(dtype)
+        if weights is not None:
+            w3 = w3 * weights[2:].astype(dtype)
         Zw = Z * w3[:, None]
         n3, sum_z, sum_zz = jnp.sum(w3), jnp.sum(Zw, 0), Zw.T @ Z
         lags = (U[2:], U[1:-1], U[:-2])
@@ -310,14 +318,20 @@ def _dynamics_stats_seq(
 
 
 def _dynamics_stats_impl(
-    Y: Array, mask: Array, subspace: Subspace, max_starts: int | None = None
+    Y: Array,
+    mask: Array,
+    subspace: Subspace,
+    max_starts: int | None = None,
+    weights: Array | None = None,
 ) -> DynamicsStats:
     Y = _error_if_nonfinite(Y, "Y")
     mu = subspace.mu.astype(Y.dtype)
     C = subspace.C.astype(Y.dtype)
     if Y.ndim == 2:
-        return _dynamics_stats_seq(Y, mask, mu, C, max_starts)
-    per_seq = jax.vmap(_dynamics_stats_seq, in_axes=(0, 0, None, None))(Y, mask, mu, C)
+        return _dynamics_stats_seq(Y, mask, mu, C, max_starts, weights)
+    per_seq = jax.vmap(_dynamics_stats_seq, in_axes=(0, 0, None, None, None, 0))(
+        Y, mask, mu, C, None, weights
+    )
     return jax.tree.map(lambda x: jnp.sum(x, axis=0), per_seq)
 
 

@@ -208,13 +208,26 @@ def _standard_normal(key: Array, shape: tuple[int, ...], dtype: Any) -> Array:
     return jnp.concatenate([r * cos, r * sin])[:size].reshape(shape)
 
 
+def _innovations(key: Array, shape: tuple[int, ...], dtype: Any, dof: float | None) -> Array:
+    """Standardised innovations ``v (…, k)`` of textons with ``Texton.dof``: ``N(0, I)``
+    (:func:`_standard_normal`) for Gaussian textons; for Student-t ones the scale mixture
+    ``v = z / √g``, ``z ~ N(0, I_k)``, ``g ~ Gamma(ν/2, rate ν/2)`` per row, so that
+    ``B v ~ t_ν(0, B Bᵀ)``."""
+    if dof is None:
+        return _standard_normal(key, shape, dtype)
+    k_z, k_g = jax.random.split(key)
+    z = _standard_normal(k_z, shape, dtype)
+    g = jax.random.gamma(k_g, dof / 2, shape[:-1], dtype) / (dof / 2)
+    return z / jnp.sqrt(g)[..., None]
+
+
 def _draw_noise(tex: Texton, key: Array | None, length: int) -> Array:
-    """``v_j ~ N(0, I_k)``, ``j = 2 … l−1``: ``(l−2, k)`` from :func:`_standard_normal`; 0 if
-    no key."""
+    """``v_j``, ``j = 2 … l−1``: ``(l−2, k)`` from :func:`_innovations` (``N(0, I_k)`` for
+    Gaussian textons); 0 if no key."""
     shape = (length - 2, tex.C.shape[-1])
     if key is None:
         return jnp.zeros(shape, tex.mu.dtype)
-    return _standard_normal(key, shape, tex.mu.dtype)
+    return _innovations(key, shape, tex.mu.dtype, tex.dof)
 
 
 # --------------------------------------------------------------------------------------------

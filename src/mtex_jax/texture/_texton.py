@@ -23,6 +23,11 @@ the state subspace, the residual ``r_t = (I − C Cᵀ)(y_t − μ)``, is scored
 
 For ``"paper"`` and ``"full"`` ``res_a = 0`` and ``res_s2 = σ²``.
 
+A ``"full"`` texton may have Student-t dynamics innovations (static :attr:`Texton.dof` ``= ν``):
+``x_{t+1} = A1 x_t + A2 x_{t−1} + d + ε_t``, ``ε_t ~ t_ν(0, B Bᵀ)``. Real capture has rare
+large innovations (glitches, sudden contacts); a Gaussian fitted to them inflates ``Q`` for
+every frame, a t down-weights them (its M-step is iteratively reweighted least squares).
+
 This module provides
 
 * :class:`Texton` (a single texton or a stack of ``N_t`` textons along a leading axis) and
@@ -54,6 +59,8 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, Float
 
+from ._checks import _check_dof
+
 # --------------------------------------------------------------------------------------------
 # Texton container
 # --------------------------------------------------------------------------------------------
@@ -82,6 +89,10 @@ class Texton(eqx.Module):
             (``"residual"`` observation model; 0 otherwise).
         res_s2: ``(*batch,)`` residual innovation variance ``s_r²`` (``σ²`` otherwise).
         observation: ``"paper"``, ``"residual"`` or ``"full"`` (static; see the module doc).
+        dof: degrees of freedom ``ν`` of Student-t dynamics innovations (static, ``"full"``
+            textons only): ``x_t = A1 x_{t−1} + A2 x_{t−2} + d + ε_t`` with
+            ``ε_t ~ t_ν(0, Q)``, a scale mixture ``ε_t = B v_t / √g_t``, ``v_t ~ N(0, I)``,
+            ``g_t ~ Gamma(ν/2, rate ν/2)``. ``None``: Gaussian innovations ``N(0, Q)``.
     """
 
     mu: Float[Array, "*batch D"]
@@ -96,6 +107,7 @@ class Texton(eqx.Module):
     res_a: Float[Array, "*batch 2"]
     res_s2: Float[Array, "*batch"]
     observation: str = eqx.field(static=True)
+    dof: float | None = eqx.field(static=True)
 
     def __init__(
         self,
@@ -111,6 +123,7 @@ class Texton(eqx.Module):
         res_a: Any = None,
         res_s2: Any = None,
         observation: str = "paper",
+        dof: float | None = None,
     ) -> None:
         """The fields as given; ``res_a`` and ``res_s2`` default to the paper's white residual
         (``a = 0``, ``s_r² = σ²``), so textons made before the observation models (and the
@@ -123,6 +136,7 @@ class Texton(eqx.Module):
         self.res_a = res_a
         self.res_s2 = sigma2 if res_s2 is None else res_s2
         self.observation = observation
+        self.dof = _check_dof(dof)
 
     def __check_init__(self) -> None:
         shapes = {name: getattr(getattr(self, name), "shape", None) for name in _TEXTON_FIELDS}
@@ -166,6 +180,11 @@ class Texton(eqx.Module):
             )
         if self.observation == "full" and k != D:
             raise ValueError(f"a 'full' texton has k = D; got k={k}, D={D}")
+        if self.dof is not None and self.observation != "full":
+            raise ValueError(
+                "Student-t innovations (Texton.dof) need observation='full', got "
+                f"{self.observation!r}"
+            )
 
     # -- shape information --------------------------------------------------------------------
 
@@ -236,6 +255,10 @@ def stack_textons(textons: Sequence[Texton]) -> Texton:
         if t.is_stacked:
             raise ValueError(
                 f"stack_textons: element {j} is already stacked (batch {t.batch_shape})"
+            )
+        if t.dof != first.dof:
+            raise ValueError(
+                f"stack_textons: element {j} has dof {t.dof}, element 0 has {first.dof}"
             )
         if t.observation != first.observation:
             raise ValueError(
