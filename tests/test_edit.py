@@ -70,6 +70,7 @@ def test_prior_hessian_bands_match_the_autodiff_hessian(tex, syn):
             assert np.abs(blk(t, t - 3)).max() == 0.0  # bandwidth two frames
 
 
+@pytest.mark.slow  # 36 s on 2 cores (the default run is kept near 15 min)
 def test_residual_jacobians_against_finite_differences(tex, syn):
     sk = tex.feature_map.skeleton
     hand = _hand(tex)

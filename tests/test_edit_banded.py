@@ -66,6 +66,7 @@ def test_dot_free_kinematics_matches_the_motion_package_and_batches(syn):
     check_grads(f, (jnp.asarray(m.rotations[:4]),), order=1, modes=("fwd", "rev"), eps=1e-6)
 
 
+@pytest.mark.slow  # 19 s on 2 cores (the default run is kept near 15 min)
 def test_frame_jacobians_are_the_diagonal_blocks_of_the_dense_jacobian(tex, syn):
     fm = tex.feature_map
     sk = fm.skeleton

@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from jax.test_util import check_grads
 from scipy.spatial.transform import Rotation
 
@@ -59,6 +60,7 @@ def test_small_angle_branches_are_exact():
     assert np.all(np.isfinite(np.asarray(jac2)))
 
 
+@pytest.mark.slow  # 19 s on 2 cores (the default run is kept near 15 min)
 def test_fk_check_grads_float64():
     rng = np.random.default_rng(1)
     root = jnp.asarray(rng.normal(size=(2, 3)))

@@ -333,6 +333,7 @@ def test_fitted_texton_extrapolates_and_is_differentiable():
         np.testing.assert_allclose(out[-2:], Y[50:52], atol=0.05)  # end poses near the subspace
 
 
+@pytest.mark.slow  # 30 s on 2 cores (the default run is kept near 15 min)
 def test_differentiable_in_key_poses_and_dynamics():
     """Through the bridge (no edits): poses and the texton's A1, B, with and without noise."""
     small = make_texton(1, D=4, k=2)
@@ -557,6 +558,7 @@ def test_non_finite_texton_raises_not_nan(fixed_edit):
 
 
 @settings(deadline=None, max_examples=15)
+@pytest.mark.slow  # 27 s on 2 cores (the default run is kept near 15 min)
 @given(
     k=st.integers(1, 4),
     length=st.integers(4, 41),

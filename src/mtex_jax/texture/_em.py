@@ -373,8 +373,13 @@ def _em(
     t0: float,
     *,
     prune_initial: bool = False,
+    prev: Texton | None = None,
 ) -> MotionTexture:
     """Hard EM from ``segs`` to convergence or ``config.max_iter`` iterations.
+
+    ``prev``: the textons whose E-step gave ``segs`` (indexed by its labels), if any: the
+    first M-step of Student-t textons then starts from them (one reweighting) instead of
+    from the Gaussian fit (``opts.irls_steps``); later M-steps always do.
 
     With ``prune_initial`` (EM from the greedy initialisation), textons that ``segs`` gives
     fewer than ``config.min_segments`` segments are dropped after the first M-step, before the
@@ -387,10 +392,11 @@ def _em(
     (``history[0, 0]``) covers the kept textons' segments only (:func:`_fit_kept`).
     """
     n_frames = run.n_frames
-    segs, _ = _relabel(segs)
+    segs, used = _relabel(segs)
+    # the textons of the E-step that gave segs, as its labels index them
+    prev = None if prev is None else _take(prev, used)
     history: list[tuple[float, float]] = []
     best: tuple[float, Texton, np.ndarray, np.ndarray, Segs, np.ndarray | None] | None = None
-    prev: Texton | None = None  # the textons of the E-step that gave segs (by its labels)
     for it in range(config.max_iter + 1):
         r = run
         n_t = int(segs[:, 3].max()) + 1

@@ -197,7 +197,17 @@ def _em_and_selection(
     if verbose:
         print("[mtex learn] EM on the selected textons", flush=True)
     # with the selection's padded sizes, so that no program is compiled again
-    model = _em(run, fm, config, threshold, np.asarray(model.segments), verbose, callback, t0)
+    model = _em(
+        run,
+        fm,
+        config,
+        threshold,
+        np.asarray(model.segments),
+        verbose,
+        callback,
+        t0,
+        prev=model.textons,
+    )
     run.min_cap = run.m_min_cap = 1
     return model
 
@@ -284,7 +294,7 @@ def _backward_bic(
         bound = -2 * score + p * math.log(n)
         b, cand = bound, None
         if bound < best_bic:  # refit only when it can pay
-            cand = _em(run, fm, short, best.threshold, segs, False, callback, t0)
+            cand = _em(run, fm, short, best.threshold, segs, False, callback, t0, prev=tex)
             cand = dataclasses.replace(cand, config=config) if cand.config != config else cand
             b = _model_bic(cand, n)
         if verbose:
