@@ -20,7 +20,8 @@ Rows, measured in one run:
 2. **Motion**, every generated set judged against the held-out clips (realism W1 of joint
    speed/acceleration/jerk and their ratio to the real-vs-real floor, foot skating, floor
    penetration, jumps above the real p99, novelty, copying): the texture's constrained
-   synthesis (sampled noise, and zero noise), its noise-driven synthesis (MT Fig. 7b: each
+   synthesis (sampled noise; the same syntheses cleaned by ``mtex_jax.edit.clean`` with the
+   training clips' contact model; zero noise), its noise-driven synthesis (MT Fig. 7b: each
    texton run from the previous frames without end constraints), the implicit model's tree
    and exact samplers from held-out start windows, AR(2) samples, and the real held-out clips.
 3. **Cost**: learn time; forward algorithm against the Viterbi on the same scores.
@@ -50,6 +51,7 @@ import numpy as np
 
 import mtex_jax as mj
 from mtex_jax import metrics
+from mtex_jax.edit import clean
 from mtex_jax.texture import (
     forward_log_likelihood,
     random_path,
@@ -301,6 +303,12 @@ def main() -> None:
     syn0 = [mj.synthesize(None, tex, s.path, lengths=s.lengths) for s in syn]
     rows["texture constrained (zero noise)"] = judge.judge(
         [s.motion for s in syn0], boundaries=[s.boundaries() for s in syn0]
+    )
+    log("texture: constrained synthesis, sampled noise, cleaned (the same syntheses)")
+    contacts = metrics.fit_contacts(train)  # the training clips' feet, never the held-out
+    syn_c = [clean(tex, s, contacts, loglik=False) for s in syn]
+    rows["texture constrained (sampled noise), cleaned"] = judge.judge(
+        [c.motion for c in syn_c], boundaries=[s.boundaries() for s in syn]
     )
     for tag, v in variants.items():
         log(f"texture with {tag}: constrained synthesis, sampled noise")

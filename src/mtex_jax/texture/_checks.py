@@ -233,14 +233,21 @@ def _student_weights(maha: Array, n: int, dof: float) -> Array:
     return (dof + n) / (dof + maha)
 
 
-def _check_dof(dof: Any) -> float | None:
-    """``None`` (Gaussian innovations) or a degrees-of-freedom ``ν > 0`` as a float."""
+def _check_dof(dof: Any, observation: str | None = None, where: str = "dof") -> float | None:
+    """``None`` (Gaussian innovations) or a degrees-of-freedom ``ν > 0`` as a float. With
+    ``observation``: Student-t innovations exist for full-dimensional textons only (the one
+    place that rule is checked)."""
     if dof is None:
         return None
     if isinstance(dof, bool) or not isinstance(dof, int | float | np.integer | np.floating):
-        raise ValueError(f"dof must be None or a number > 0, got {dof!r}")
+        raise ValueError(f"{where} must be None or a number > 0, got {dof!r}")
     if not math.isfinite(float(dof)) or float(dof) <= 0:
-        raise ValueError(f"dof must be None or a finite number > 0, got {dof!r}")
+        raise ValueError(f"{where} must be None or a finite number > 0, got {dof!r}")
+    if observation is not None and observation != "full":
+        raise ValueError(
+            f"Student-t innovations ({where}={float(dof):g}) need observation='full', "
+            f"got {observation!r}"
+        )
     return float(dof)
 
 

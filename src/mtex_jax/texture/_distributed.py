@@ -44,7 +44,7 @@ from ._learn import (
     _resolve_state_dim,
 )
 from ._model import MotionTexture
-from ._mstep import _dynamics_pass, _frame_pass, _solve, _weighted_pass
+from ._mstep import _dynamics_pass, _frame_pass, _solve, _subspaces
 from ._segment import _check_lengths
 from ._texton import Texton
 
@@ -260,25 +260,18 @@ class _DistRunner(_Runner):
         n_tex = self._cap("textons", max(_capacity(n_textons), self.min_cap, self.m_min_cap))
         assert self.config.state_dim is not None  # resolved before EM
         fs = _allreduce(_frame_pass(self.Y, rows_j, valid, n_tex, self.tmax))
-        sub, ds = _dynamics_pass(
-            self.Y,
-            rows_j,
-            valid,
-            fs,
-            self.config.state_dim,
-            float(self.config.sigma2_floor),
-            self.tmax,
-        )
+        sub = _subspaces(fs, self.config.state_dim, float(self.config.sigma2_floor))
         # Student-t textons: the reweightings of the single-process M-step (from the Gaussian
         # fit, or one from the E-step's textons), each one all-reduce of the weighted sums
         warm = _warm_start(prev, n_tex, self.opts)
         if warm is None:
+            ds = _dynamics_pass(self.Y, rows_j, valid, sub, self.tmax)
             tex = _solve(sub, _allreduce(ds), self.opts)
             steps = self.opts.irls_steps if self.opts.dof is not None else 0
         else:
             tex, steps = warm, 1
         for _ in range(steps):
-            ds = _weighted_pass(self.Y, rows_j, valid, sub, tex, self.tmax)
+            ds = _dynamics_pass(self.Y, rows_j, valid, sub, self.tmax, tex)
             tex = _solve(sub, _allreduce(ds), self.opts)
         M, pi = _transitions(segs, n_textons, self.config.pseudo_count)
         return tex, M, pi

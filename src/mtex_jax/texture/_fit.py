@@ -146,11 +146,7 @@ class _SolveOptions(eqx.Module):
             raise ValueError(
                 f"observation must be one of {OBSERVATION_MODELS}, got {observation!r}"
             )
-        dof = _check_dof(dof)
-        if dof is not None and observation != "full":
-            raise ValueError(
-                f"Student-t innovations (dof={dof:g}) need observation='full', got {observation!r}"
-            )
+        dof = _check_dof(dof, observation)
         return _SolveOptions(
             ridge=_check_positive("ridge", ridge, allow_zero=True),
             q_floor=_check_positive("q_floor", q_floor),

@@ -1,7 +1,7 @@
 """M-step kernels: every texton fitted from summed statistics of its segments (SPEC §2), in
 one process (``_fit_all``: per-texton chunks of segments) and as the passes of the
-multi-process M-step (``_frame_pass``, ``_dynamics_pass``, ``_solve``: per-segment statistics
-summed per texton, all-reduced between the passes by the caller)."""
+multi-process M-step (``_frame_pass``, ``_subspaces``, ``_dynamics_pass``, ``_solve``:
+per-segment statistics summed per texton, all-reduced between the passes by the caller)."""
 
 from __future__ import annotations
 
@@ -153,36 +153,33 @@ def _frame_pass(Y: Array, rows: Array, valid: Array, n_tex: int, width: int) -> 
 
 
 @eqx.filter_jit
-def _dynamics_pass(
-    Y: Array, rows: Array, valid: Array, fs: FrameStats, k: int, floor: float, width: int
-) -> tuple[Subspace, DynamicsStats]:
-    """The subspaces from the summed pass-1 statistics, and pass 2 on this process's
-    segments: dynamics statistics summed per texton."""
-    n_tex = fs.count.shape[0]
+def _subspaces(fs: FrameStats, k: int, floor: float) -> Subspace:
+    """The subspaces of every texton from its summed (all-reduced) pass-1 statistics."""
     # one texton at a time (lax.map), as in the single-process M-step: batched LAPACK calls
     # can deadlock jaxlib's CPU thread pool on 2 cores
-    sub = jax.lax.map(lambda f: _subspace_impl(f, k, floor), fs)
-    G, ids = _slabs(Y, rows, valid, width)
-    sub_seg = jax.tree.map(lambda a: a[jnp.clip(rows[:, 3], 0, n_tex - 1)], sub)
-    ds = jax.vmap(_dynamics_stats_impl)(G, ids, sub_seg)
-    return sub, jax.tree.map(lambda a: _per_texton(a, rows, valid, n_tex), ds)
+    return jax.lax.map(lambda f: _subspace_impl(f, k, floor), fs)
 
 
 @eqx.filter_jit
-def _weighted_pass(
-    Y: Array, rows: Array, valid: Array, sub: Subspace, tex: Texton, width: int
+def _dynamics_pass(
+    Y: Array, rows: Array, valid: Array, sub: Subspace, width: int, tex: Texton | None = None
 ) -> DynamicsStats:
-    """One IRLS step of Student-t textons on this process's segments: pass 2 with every
-    frame's dynamics term weighted under the current fit ``tex`` (as in ``_fit_all``),
-    summed per texton."""
+    """Pass 2 on this process's segments: dynamics statistics summed per texton. With
+    Student-t textons ``tex`` (the current fit), one IRLS step: every frame's dynamics term
+    weighted under ``tex`` (as in ``_fit_all``)."""
     n_tex = sub.mu.shape[0]
     G, ids = _slabs(Y, rows, valid, width)
     lab = jnp.clip(rows[:, 3], 0, n_tex - 1)
     sub_seg = jax.tree.map(lambda a: a[lab], sub)
-    dof = tex.dof
-    assert dof is not None
-    w = jax.vmap(lambda t, g: _student_frame_weights(t, g, dof))(tex[lab], G)
-    ds = jax.vmap(lambda g, i, s, ww: _dynamics_stats_impl(g, i, s, weights=ww))(G, ids, sub_seg, w)
+    if tex is None:
+        ds = jax.vmap(_dynamics_stats_impl)(G, ids, sub_seg)
+    else:
+        dof = tex.dof
+        assert dof is not None
+        w = jax.vmap(lambda t, g: _student_frame_weights(t, g, dof))(tex[lab], G)
+        ds = jax.vmap(lambda g, i, s, ww: _dynamics_stats_impl(g, i, s, weights=ww))(
+            G, ids, sub_seg, w
+        )
     return jax.tree.map(lambda a: _per_texton(a, rows, valid, n_tex), ds)
 
 

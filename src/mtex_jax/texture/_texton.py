@@ -136,7 +136,7 @@ class Texton(eqx.Module):
         self.res_a = res_a
         self.res_s2 = sigma2 if res_s2 is None else res_s2
         self.observation = observation
-        self.dof = _check_dof(dof)
+        self.dof = _check_dof(dof, observation, where="Texton.dof")
 
     def __check_init__(self) -> None:
         shapes = {name: getattr(getattr(self, name), "shape", None) for name in _TEXTON_FIELDS}
@@ -180,11 +180,6 @@ class Texton(eqx.Module):
             )
         if self.observation == "full" and k != D:
             raise ValueError(f"a 'full' texton has k = D; got k={k}, D={D}")
-        if self.dof is not None and self.observation != "full":
-            raise ValueError(
-                "Student-t innovations (Texton.dof) need observation='full', got "
-                f"{self.observation!r}"
-            )
 
     # -- shape information --------------------------------------------------------------------
 
