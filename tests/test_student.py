@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -252,3 +253,34 @@ def test_warm_started_m_step_is_one_weighted_least_squares():
         np.testing.assert_allclose(Cg @ np.asarray(one.A1) @ Cg.T, W[:D].T, atol=1e-9)
         np.testing.assert_allclose(Cg @ np.asarray(one.A2) @ Cg.T, W[D : 2 * D].T, atol=1e-9)
         np.testing.assert_allclose(Cg @ np.asarray(one.Q) @ Cg.T, Sig, atol=1e-9)
+
+
+def test_cold_and_warm_m_steps_share_one_program():
+    """With ``cold`` given, ``_fit_all`` is one program for EM's first M-step (the Gaussian fit
+    and ``irls_steps`` reweightings; ``prev`` only a placeholder) and its later ones (one
+    reweighting from ``prev``): each branch equals the separate path, and switching between
+    them does not trace again."""
+    from mtex_jax.texture._fit import _SolveOptions
+    from mtex_jax.texture._mstep import _fit_all_impl
+    from mtex_jax.texture._rows import _row_chunks
+
+    rng = np.random.default_rng(11)
+    D, nu, S, T = 3, 4.0, 2, 300
+    Y = jnp.asarray(np.stack([_heavy(rng, T, D, nu=3.0) for _ in range(S)]))
+    rows = np.array([(s, b, 50, (s + b // 50) % 2) for s in range(S) for b in range(0, T, 50)])
+    labels, groups = _row_chunks(rows[:, 3], 8)
+    chunks = (jnp.asarray(labels), jnp.asarray(groups))
+    opts = _SolveOptions.make(0.0, 1e-12, None, 4.0, "full", 1e-6, dof=nu)
+    args = (Y, jnp.asarray(rows), chunks, 2, 50, D, 1e-6, opts)
+    fit = eqx.filter_jit(_fit_all_impl)
+    cold_sep = fit(*args)
+    warm_sep = fit(*args, cold_sep)
+    shared = eqx.filter_jit(eqx.debug.assert_max_traces(_fit_all_impl, max_traces=1))
+    placeholder = jax.tree.map(jnp.zeros_like, cold_sep)
+    cold = shared(*args, placeholder, jnp.asarray(True))
+    warm = shared(*args, cold, jnp.asarray(False))
+    for a, b in ((cold, cold_sep), (warm, warm_sep)):
+        for f in ("mu", "C", "A1", "A2", "d", "B"):
+            np.testing.assert_allclose(getattr(a, f), getattr(b, f), rtol=1e-12, atol=1e-12)
+    # the warm step moved the fit (it is not the cold fit returned again)
+    assert float(jnp.max(jnp.abs(warm.B - cold.B))) > 1e-8

@@ -8,6 +8,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -164,7 +165,7 @@ class _Runner:
         chunks = self._m_chunks(segs, rows_valid)
         assert self.config.state_dim is not None  # resolved by learn before EM
         n_cap = self._cap("textons", max(_capacity(n_textons), self.min_cap, self.m_min_cap))
-        tex = _fit_all(
+        args = (
             self.Y,
             jax.device_put(rows),
             chunks,
@@ -173,8 +174,15 @@ class _Runner:
             self.config.state_dim,
             float(self.config.sigma2_floor),
             self.opts,
-            _warm_start(prev, n_cap, self.opts),
         )
+        warm, cold = _warm_start(prev, n_cap, self.opts), None
+        if self.opts.dof is not None:  # Student-t: the cold and warm M-steps share a program
+            cold = jnp.asarray(warm is None)
+            if warm is None:
+                warm = jax.tree.map(
+                    lambda s: jnp.zeros(s.shape, s.dtype), eqx.filter_eval_shape(_fit_all, *args)
+                )
+        tex = _fit_all(*args, warm, cold)
         M, pi = _transitions(segs, n_textons, self.config.pseudo_count)
         return tex, M, pi
 

@@ -35,6 +35,7 @@ def _fit_all_impl(
     floor: float,
     opts,
     prev: Texton | None = None,
+    cold: Array | None = None,
 ) -> Texton:
     """M-step: fit every texton on all of its segments (SPEC §2), from summed statistics.
 
@@ -55,7 +56,10 @@ def _fit_all_impl(
     E-step that made the segments, stacked as the labels index them; EM's later iterations):
     one reweighting from ``prev``, the EM of the t as a scale mixture (its E-step: the weights;
     its M-step: the weighted closed form), so that EM's iterations carry the IRLS and an
-    M-step costs one weighted pass, not ``opts.irls_steps``.
+    M-step costs one weighted pass, not ``opts.irls_steps``. With ``cold`` (a traced bool)
+    as well, ``prev`` is used only where ``cold`` is false (else it is a placeholder of the
+    same shapes, and the Gaussian fit and ``opts.irls_steps`` reweightings run): the cold and
+    the warm M-step are then one compiled program.
     """
     T = Y.shape[1]
     D = Y.shape[2]
@@ -97,15 +101,23 @@ def _fit_all_impl(
         # one segment starts per slab
         return _dynamics_stats_impl(frames, ids, jax.tree.map(lambda a: a[i], sub), G)
 
-    dof = opts.dof
-    if dof is None or prev is None:
+    def gaussian() -> Texton:
         ds = summed(pass2)
-        tex = jax.lax.map(lambda a: _texton_from_stats_impl(a[0], a[1], opts), (sub, ds))
-        if dof is None:
-            return tex
-        steps = opts.irls_steps
-    else:
+        return jax.lax.map(lambda a: _texton_from_stats_impl(a[0], a[1], opts), (sub, ds))
+
+    dof = opts.dof
+    steps: int | Array
+    if dof is None:
+        return gaussian()
+    if prev is None:
+        tex, steps = gaussian(), opts.irls_steps
+    elif cold is None:
         tex, steps = prev, 1
+    else:
+        # one program for EM's first M-step (cold: ``prev`` is a placeholder) and the later
+        # ones (warm), so that a learn compiles the M-step once per stack size, not twice
+        tex = jax.lax.cond(cold, gaussian, lambda: prev)
+        steps = jnp.where(cold, opts.irls_steps, 1)
 
     def irls(_: Array, tex: Texton) -> Texton:
         """One reweighting of the Student-t fit (``fit_texton``'s IRLS), every texton."""
