@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
+import jax
 import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
@@ -425,3 +426,26 @@ def test_greedy_prediction_errors_equal_the_direct_formula():
         one = np.asarray(_bank_errors(bank.one(i), jax.device_put(win)))[0]
         np.testing.assert_allclose(one, got[i], rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(got[3:], np.broadcast_to(got[2], got[3:].shape), rtol=1e-12)
+
+
+def test_default_texture_of_the_training_clips_stays_in_range_when_noise_driven(cmu_dir):
+    """Issue 16's stability criterion on real data: the default texture of the quality split's
+    10 training clips (60 Hz), every texton run by its dynamics with sampled noise for 10,000
+    frames from its own key poses, stays finite and within a small multiple of the key poses'
+    range. (With ``rho_max=1`` one texton reached 27-29 times: a unit root keeps its drift.)"""
+    from mtex_jax.texture import spectral_radius, synthesize_texton
+
+    train = [f"60_{i:02d}" for i in (1, 2, 3, 4, 5, 6, 7, 9, 10, 11)]
+    clips = [mj.read_bvh(cmu_dir / f"{n}.bvh")[4:] for n in train]
+    tex = learn(clips, LearnConfig(tmin=60, tmax=180, fps=60.0))
+    assert tex.config.rho_max == 0.999
+    assert float(np.max(np.asarray(spectral_radius(tex.textons)))) <= 0.999 + 1e-12
+    kp = np.asarray(tex.key_poses)
+    lab = np.asarray(tex.segments)[:, 3]
+    span = float(np.abs(kp).max())
+    for i in range(tex.n_textons):
+        run = np.asarray(
+            synthesize_texton(jax.random.key(i), tex.textons[i], 10_000, kp[lab == i][0])
+        )
+        assert np.isfinite(run).all()
+        assert np.abs(run).max() < 5 * span, (i, np.abs(run).max() / span)

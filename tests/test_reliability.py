@@ -173,7 +173,7 @@ def test_2_long_deepmimic_keyframe_is_refused(tmp_path, seconds):
 def test_3_unstable_texton_noise_driven_raises_naming_rho():
     tex = unstable_texton()
     start = jnp.ones((2, 3))
-    with pytest.raises(ValueError, match=r"spectral radius 1\.5.*rho_max=1\.0"):
+    with pytest.raises(ValueError, match=r"spectral radius 1\.5.*rho_max=0\.999"):
         mj.texture.synthesize_texton(jax.random.key(0), tex, 3000, start)
     with pytest.raises(ValueError, match="spectral radius"):
         mj.texture.sample_texton(jax.random.key(0), tex, 3000, jnp.ones(2), jnp.ones(2))

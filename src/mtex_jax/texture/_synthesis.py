@@ -131,7 +131,7 @@ def synthesize_texton(
         ValueError: bad shapes, non-finite poses, unknown weighting, too short or too long
             ``length`` (``MAX_GENERATED_FRAMES``), or a result that overflows (an unstable
             texton, spectral radius > 1, run noise-driven for too long: the message names
-            the radius; learn with ``LearnConfig(rho_max=1.0)``).
+            the radius; learn with ``LearnConfig(rho_max=0.999)``, the default).
         TypeError: ``key`` is not a PRNG key (nor ``None``).
     """
     check_key(key, "synthesize_texton", allow_none=True)

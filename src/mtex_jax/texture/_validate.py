@@ -77,5 +77,5 @@ def check_finite_output(out: Any, texton: Texton, where: str) -> None:
         f"{where}: the result overflows (NaN/inf): the texton's dynamics are unstable "
         f"(spectral radius {rho_s} > 1) and grow without bound over {np.shape(out)[-2]} frames; "
         "hold the end (end=...), synthesise fewer frames, or learn with "
-        "LearnConfig(rho_max=1.0)"
+        "LearnConfig(rho_max=0.999) (the default)"
     )
