@@ -20,9 +20,11 @@ Rows, measured in one run:
 2. **Motion**, every generated set judged against the held-out clips (realism W1 of joint
    speed/acceleration/jerk and their ratio to the real-vs-real floor, foot skating, floor
    penetration, jumps above the real p99, novelty, copying): the texture's constrained
-   synthesis (sampled noise; the same syntheses cleaned by ``mtex_jax.edit.clean`` with the
-   training clips' contact model; zero noise), its noise-driven synthesis (MT Fig. 7b: each
-   texton run from the previous frames without end constraints), the implicit model's tree
+   synthesis (sampled noise from the texture's fitted innovation process; the same
+   syntheses cleaned by ``mtex_jax.edit.clean`` with the training clips' contact model;
+   independent innovations, the default before the process; zero noise), its noise-driven
+   synthesis (MT Fig. 7b: each texton run from the previous frames without end constraints,
+   by ``synthesize_texton``: independent innovations), the implicit model's tree
    and exact samplers from held-out start windows, AR(2) samples, and the real held-out clips.
 3. **Cost**: learn time; forward algorithm against the Viterbi on the same scores.
 
@@ -54,11 +56,11 @@ from mtex_jax import metrics
 from mtex_jax.edit import clean
 from mtex_jax.texture import (
     forward_log_likelihood,
-    random_path,
     segment_scores,
     synthesize_texton,
     viterbi_segments,
 )
+from quality_generators import ar2_samples, noise_driven
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
@@ -86,46 +88,6 @@ def load(names: list[str]) -> list[mj.Motion]:
     capture's reference pose (a 0.4 m jump at the fingers into frame 1), not dancing; the
     motion-texture notebook drops the same 4 frames."""
     return [mj.read_bvh(SHARED / "data" / "cmu-salsa" / f"{n}.bvh")[4:] for n in names]
-
-
-# --------------------------------------------------------------------------------------------
-# generators
-# --------------------------------------------------------------------------------------------
-def noise_driven(key: jax.Array, tex: mj.MotionTexture, n_frames: int) -> tuple[Any, np.ndarray]:
-    """MT Fig. 7b: a random texton path; each texton is run by its dynamics with sampled noise
-    from the last two frames so far (no end constraint), for a length drawn from its training
-    segments. Returns (Y, boundaries)."""
-    kp, kl, kn = jax.random.split(key, 3)
-    path = np.asarray(random_path(kp, tex, max(4, n_frames // tex.config.tmin + 2)))
-    lab = np.asarray(tex.key_pose_labels)
-    lens = np.asarray(tex.segment_lengths)
-    kpose = np.asarray(tex.key_poses)
-    rng = np.random.default_rng(int(jax.random.randint(kl, (), 0, 2**31 - 1)))
-    first = rng.choice(np.flatnonzero(lab == path[0]))
-    Y = [kpose[first]]
-    total, bounds = 2, []
-    for j, i in enumerate(path):
-        L = int(rng.choice(lens[lab == i]))
-        start = np.concatenate(Y)[-2:]
-        out = synthesize_texton(jax.random.fold_in(kn, j), tex.textons[int(i)], L, start)
-        Y.append(np.asarray(out)[2:])
-        bounds.append(total)
-        total += L - 2
-        if total >= n_frames:
-            break
-    return np.concatenate(Y)[:n_frames], np.asarray(bounds[1:])
-
-
-def ar2_samples(key: jax.Array, model: metrics.GaussianAR2, start: np.ndarray, n: int) -> Any:
-    A1, A2, c, L = (np.asarray(a) for a in (model.A1, model.A2, model.c, model.chol))
-    e = np.asarray(jax.random.normal(key, (n, c.shape[0]), jnp.float64)) @ L.T
-    Y = np.zeros((n, c.shape[0]))
-    Y[:2] = start
-    for t in range(2, n):
-        Y[t] = A1 @ Y[t - 1] + A2 @ Y[t - 2] + c + e[t]
-        if not np.all(np.isfinite(Y[t])) or np.abs(Y[t]).max() > 1e6:
-            raise FloatingPointError(f"AR(2) sample diverged at frame {t}")
-    return Y
 
 
 # --------------------------------------------------------------------------------------------
@@ -174,6 +136,12 @@ def main() -> None:
         segments_per_texton=float(lab.size / tex.n_textons),
         single_segment_share=float(np.mean(counts == 1)),
         spectral_radius_max=float(np.max(np.asarray(mj.texture.spectral_radius(tex.textons)))),
+        synthesis_innovations=None
+        if tex.innovations is None
+        else dict(
+            acf=[float(r) for r in np.asarray(tex.innovations.acf)],
+            persistence=float(tex.innovations.persistence),
+        ),
     )
     log(f"  {tex.n_textons} textons from {lab.size} segments in {t_learn:.1f} s")
     # every texton run by its dynamics with sampled noise for 10,000 frames from its own key
@@ -299,6 +267,12 @@ def main() -> None:
     rows["texture constrained (sampled noise)"] = judge.judge(
         [s.motion for s in syn], boundaries=[s.boundaries() for s in syn]
     )
+    log("texture: constrained synthesis, independent innovations (white; the same paths' keys)")
+    white = dataclasses.replace(tex, innovations=None)
+    syn_w = [mj.synthesize(k, white, n_frames=n_frames) for k in keys]
+    rows["texture constrained (sampled noise), independent innovations"] = judge.judge(
+        [s.motion for s in syn_w], boundaries=[s.boundaries() for s in syn_w]
+    )
     log("texture: constrained synthesis, zero noise (conditional mean) on the same paths")
     syn0 = [mj.synthesize(None, tex, s.path, lengths=s.lengths) for s in syn]
     rows["texture constrained (zero noise)"] = judge.judge(
@@ -394,6 +368,16 @@ def _f(x: Any, nd: int = 3) -> str:
     return f"{x:.{nd}f}" if isinstance(x, float) else str(x)
 
 
+def _innovations_text(p: dict[str, Any] | None) -> str:
+    if p is None:
+        return " Synthesis draws independent innovations."
+    acf = ", ".join(f"{r:.2f}" for r in p["acf"])
+    return (
+        " Synthesis innovations (fitted on the training residuals): autocorrelation "
+        f"{acf} at lags 1–{len(p['acf'])}, scale persistence {p['persistence']:.3f}."
+    )
+
+
 def write(res: dict[str, Any], out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     js = out.with_suffix(".json")
@@ -418,7 +402,8 @@ def write(res: dict[str, Any], out: Path) -> None:
         f"radius {t['spectral_radius_max']:.3f}, learned in {t['learn_s']:.1f} s. Every "
         f"texton run by its dynamics with sampled noise for 10,000 frames from its key poses: "
         f"finite {t['noise_driven_10k']['finite']}, largest |y| "
-        f"{t['noise_driven_10k']['max_over_key_pose_range']:.2f}× the key poses' largest.",
+        f"{t['noise_driven_10k']['max_over_key_pose_range']:.2f}× the key poses' largest."
+        + _innovations_text(t.get("synthesis_innovations")),
         "",
         "## Density and one-step prediction (held-out clips, texture's observation vectors)",
         "",

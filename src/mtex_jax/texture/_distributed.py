@@ -42,6 +42,7 @@ from ._learn import (
     _em_and_selection,
     _greedy_segments,
     _resolve_state_dim,
+    with_innovations,
 )
 from ._model import MotionTexture
 from ._mstep import _dynamics_pass, _frame_pass, _solve, _subspaces
@@ -450,8 +451,17 @@ def learn_distributed(
                 )
             models.append(model)
             bics.append(b)
-        return models[int(np.argmin(bics))]
+        return _with_innovations(models[int(np.argmin(bics))], run)
     threshold = float(init["threshold"][0])
-    return _em_and_selection(
+    model = _em_and_selection(
         run, fm, config, threshold, init["segs0"], verbose and root, callback, t0
+    )
+    return _with_innovations(model, run)
+
+
+def _with_innovations(model: MotionTexture, run: _DistRunner) -> MotionTexture:
+    """The innovation process of the model from every process's residuals (summed
+    statistics), the same on every process."""
+    return with_innovations(
+        model, run.ys, run.offset, reduce=lambda st: np.asarray(_allreduce(jnp.asarray(st)))
     )

@@ -25,6 +25,11 @@ from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
 from ._em import _PAD_E_STEP, _em, _Runner
 from ._init import _feasible, greedy_init, threshold_for_textons
+from ._innovation_process import (
+    innovation_statistics,
+    process_from_statistics,
+    segment_innovations,
+)
 from ._labels import _capacity, _keep_textons
 from ._model import MotionTexture
 from ._segment import _check_lengths
@@ -163,10 +168,34 @@ def learn(
     if config.threshold is None and config.n_textons is None and config.bic_thresholds:
         _, table, models = _bic(run, fm, config, config.bic_thresholds, verbose, callback)
         best = int(np.argmin([r["bic"] for r in table]))
-        return models[best]
+        return with_innovations(models[best], ys)
     t0 = time.perf_counter()
     threshold, segs = _greedy_segments(ys, config, verbose, t0)
-    return _em_and_selection(run, fm, config, threshold, segs, verbose, callback, t0)
+    model = _em_and_selection(run, fm, config, threshold, segs, verbose, callback, t0)
+    return with_innovations(model, ys)
+
+
+def with_innovations(
+    model: MotionTexture,
+    ys: Sequence[np.ndarray],
+    offset: int = 0,
+    reduce: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> MotionTexture:
+    """``model`` with its :class:`InnovationProcess` fitted on the training residuals of its
+    segmentation (``config.innovations == "fitted"``; else unchanged).
+
+    ``ys`` are the clips numbered from ``offset`` in ``model.segments`` (a process's share
+    of a distributed learn); ``reduce`` sums the statistics over processes.
+    """
+    if model.config.innovations != "fitted":
+        return model
+    rows = np.asarray(model.segments, dtype=np.int64)
+    rows = rows[(rows[:, 0] >= offset) & (rows[:, 0] < offset + len(ys))]
+    rows[:, 0] -= offset
+    stats = innovation_statistics(segment_innovations(model.textons, ys, rows))
+    if reduce is not None:
+        stats = reduce(stats)
+    return dataclasses.replace(model, innovations=process_from_statistics(stats))
 
 
 def _refit_config(config: LearnConfig) -> LearnConfig:

@@ -17,6 +17,7 @@ from ..core import load_arrays_json, save_arrays_json
 from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
 from ._forward import log_likelihood
+from ._innovation_process import InnovationProcess
 from ._segment import Segmentation, segment
 from ._texton import Texton
 from ._validate import TEXTURE_MEMBERS, check_texture_arrays
@@ -44,6 +45,8 @@ class MotionTexture(eqx.Module):
         feature_map: the :class:`FeatureMap` of the training clips (``None`` for raw arrays).
         log_durations: ``(N_t, tmax − tmin + 1)`` log-probabilities of each texton's segment
             lengths ``tmin … tmax`` (``LearnConfig.durations``), or ``None``: flat (the paper).
+        innovations: the :class:`InnovationProcess` synthesis draws innovations from, or
+            ``None``: independent (``LearnConfig.innovations == "white"``, the paper).
         config: the :class:`LearnConfig` (static).
         threshold: the greedy-initialisation threshold used (static).
     """
@@ -60,6 +63,7 @@ class MotionTexture(eqx.Module):
     config: LearnConfig = eqx.field(static=True)
     threshold: float = eqx.field(static=True)
     log_durations: Float[Array, "n L"] | None = None
+    innovations: InnovationProcess | None = None
 
     def __check_init__(self) -> None:
         n = self.textons.n_textons if self.textons.is_stacked else 1
@@ -173,6 +177,9 @@ class MotionTexture(eqx.Module):
         )
         if self.log_durations is not None:
             arrays["log_durations"] = np.asarray(self.log_durations)
+        if self.innovations is not None:
+            arrays["innovations.acf"] = np.asarray(self.innovations.acf)
+            arrays["innovations.persistence"] = np.asarray(self.innovations.persistence)
         meta: dict[str, Any] = {
             "kind": _KIND,
             "format_version": FORMAT_VERSION,
@@ -226,7 +233,13 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
         if meta.get("feature_map") is not None:
             fa = {k.split(".", 1)[1]: v for k, v in arrays.items() if k.startswith("feature_map.")}
             fm = FeatureMap.from_arrays_json(fa, meta["feature_map"])
-        old = {"observation": "paper", "durations": "flat", "selection": "none", "dof": None}
+        old = {
+            "observation": "paper",
+            "durations": "flat",
+            "selection": "none",
+            "dof": None,
+            "innovations": "white",
+        }
         cfg_d = {**old, **meta["config"]}
         if cfg_d.get("bic_thresholds") is not None:
             cfg_d["bic_thresholds"] = tuple(cfg_d["bic_thresholds"])
@@ -244,11 +257,25 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
             log_durations=(
                 None if "log_durations" not in arrays else jnp.asarray(arrays["log_durations"])
             ),
+            innovations=_innovations_of(arrays),
             config=cfg,
             threshold=float(meta["threshold"]),
         )
     except (KeyError, TypeError, ValueError, AttributeError, OverflowError, IndexError) as e:
         raise ValueError(f"{path}: invalid motion texture file: {e}") from None
+
+
+def _innovations_of(arrays: dict[str, np.ndarray]) -> InnovationProcess | None:
+    """The file's innovation process; ``None`` in files without one (independent)."""
+    have = [k for k in ("innovations.acf", "innovations.persistence") if k in arrays]
+    if not have:
+        return None
+    if len(have) != 2:
+        raise ValueError("innovations.acf and innovations.persistence come together")
+    return InnovationProcess(
+        acf=jnp.asarray(arrays["innovations.acf"]),
+        persistence=jnp.asarray(arrays["innovations.persistence"]),
+    )
 
 
 def texture_summary(tex: MotionTexture) -> str:
@@ -260,6 +287,14 @@ def texture_summary(tex: MotionTexture) -> str:
         f"state dim: {tex.config.state_dim}   D: {tex.obs_dim}   threshold: {tex.threshold:.4g}",
         f"observation model: {tex.textons.observation}   innovations: "
         + ("Gaussian" if tex.textons.dof is None else f"Student-t, {tex.textons.dof:g} dof"),
+        "synthesis innovations: "
+        + (
+            "independent"
+            if tex.innovations is None
+            else "autocorrelation "
+            + ", ".join(f"{r:.2f}" for r in np.asarray(tex.innovations.acf))
+            + f"; scale persistence {float(tex.innovations.persistence):.3f}"
+        ),
         f"segment lengths (frames): min {int(st[:, 3][st[:, 0] > 0].min())}  "
         f"mean {np.asarray(tex.segment_lengths).mean():.1f}  max {int(st[:, 4].max())}  "
         f"(tmin {tex.config.tmin}, tmax {tex.config.tmax})",

@@ -15,7 +15,10 @@ A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthe
    ``K_m`` (the given ``start`` pose for ``m = 1``) and its last two held at ``K_{m+1}``,
    reprojected into its own subspace, ``x = C_{ℓ_m}ᵀ(K_{m+1} − μ_{ℓ_m})`` (MT §5.4,
    :func:`~mtex_jax._synthesis.synthesize_texton`). The last two frames are dropped, because
-   they are the first two frames of texton ``m + 1``: shared frames appear once.
+   they are the first two frames of texton ``m + 1``: shared frames appear once. The
+   innovations of each texton are drawn from the texture's
+   :class:`~mtex_jax.texture.InnovationProcess` (autocorrelated, with a persistent
+   Student-t scale), or independently when it has none.
 3. The last texton is held, the same way, at the key poses of a successor drawn from
    ``M[ℓ_n, ·]`` that is not output — or, for the choreographer, at the requested end pose in
    its own last two frames. No texton runs free, so an unstable texton (spectral radius > 1)
@@ -41,6 +44,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..core import MAX_GENERATED_FRAMES, check_count, check_key
 from ..motion import Motion
+from ._innovation_process import draw_innovations
 from ._keyposes import _instances, _successor
 from ._model import MotionTexture
 from ._paths import random_path
@@ -51,6 +55,8 @@ _PAD_TEXTONS = 8  # the path axis is padded to a multiple of this (compilation s
 _PAD_FRAMES = 16  # and the per-texton length to a multiple of this
 
 Residual = Literal["blend", "subspace"]
+
+_draw_innovations_jit = eqx.filter_jit(draw_innovations)
 
 
 class Synthesis(eqx.Module):
@@ -257,8 +263,10 @@ def _synthesize_path(
     at_p = np.concatenate([end_at, np.full(pad, l_pad - 2)]).astype(np.int32)
     if key is None:
         v = jnp.zeros((n_pad, l_pad - 2, k), dt)
-    else:
+    elif texture.innovations is None:
         v = _innovations(key, (n_pad, l_pad - 2, k), dt, tex.dof)
+    else:  # each texton's stretch of innovations from the fitted process
+        v = _draw_innovations_jit(key, texture.innovations, (n_pad, l_pad - 2, k), dt, tex.dof)
     out = _path_core_jit(
         tex,
         jnp.asarray(lab_p),

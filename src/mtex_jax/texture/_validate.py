@@ -15,7 +15,14 @@ __all__ = ["TEXTURE_MEMBERS", "check_finite_output", "check_texture_arrays"]
 
 #: The members a motion-texture file may hold besides the required ones (fnmatch patterns);
 #: any other member is rejected before it is decompressed.
-TEXTURE_MEMBERS = ("texton.*", "feature_map.offset", "feature_map.scale", "log_durations")
+TEXTURE_MEMBERS = (
+    "texton.*",
+    "feature_map.offset",
+    "feature_map.scale",
+    "log_durations",
+    "innovations.acf",
+    "innovations.persistence",
+)
 
 _STOCHASTIC_TOL = 1e-6
 
