@@ -17,8 +17,8 @@ from mtex_jax.texture import random_path, synthesize_texton
 
 def noise_driven(key: jax.Array, tex: mj.MotionTexture, n_frames: int) -> tuple[Any, np.ndarray]:
     """MT Fig. 7b: a random texton path; each texton is run by its dynamics with sampled noise
-    from the last two frames so far (no end constraint), for a length drawn from its training
-    segments. Returns (Y, boundaries)."""
+    (from the texture's innovation process, if it has one) from the last two frames so far (no
+    end constraint), for a length drawn from its training segments. Returns (Y, boundaries)."""
     kp, kl, kn = jax.random.split(key, 3)
     path = np.asarray(random_path(kp, tex, max(4, n_frames // tex.config.tmin + 2)))
     lab = np.asarray(tex.key_pose_labels)
@@ -31,7 +31,8 @@ def noise_driven(key: jax.Array, tex: mj.MotionTexture, n_frames: int) -> tuple[
     for j, i in enumerate(path):
         L = int(rng.choice(lens[lab == i]))
         start = np.concatenate(Y)[-2:]
-        out = synthesize_texton(jax.random.fold_in(kn, j), tex.textons[int(i)], L, start)
+        k = jax.random.fold_in(kn, j)
+        out = synthesize_texton(k, tex.textons[int(i)], L, start, innovations=tex.innovations)
         Y.append(np.asarray(out)[2:])
         bounds.append(total)
         total += L - 2

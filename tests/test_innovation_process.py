@@ -20,10 +20,12 @@ from mtex_jax.texture import (
     LearnConfig,
     draw_innovations,
     fit_innovation_process,
+    fit_texton,
     innovation_statistics,
     load_texture,
     process_from_statistics,
     segment_innovations,
+    synthesize_texton,
 )
 from mtex_jax.texture._innovation_process import _scale_chain
 
@@ -172,3 +174,28 @@ def test_learn_fits_the_process_on_the_training_residuals(tmp_path):
 def test_float32_smoke():
     v = draw_innovations(jax.random.key(0), _process(), (2, 16, 3), jnp.float32, 4.0)
     assert v.dtype == jnp.float32 and np.isfinite(np.asarray(v)).all()
+
+
+def test_synthesize_texton_draws_from_a_process():
+    """Noise-driven: the texton's recursion (numpy) driven by ``draw_innovations`` with the
+    same key; constrained: the end frames held; a bad process is a TypeError."""
+    y = _clips(1)[0]
+    t = fit_texton(jnp.asarray(y), state_dim=3, observation="full", dof=4.0)
+    p = _process()
+    start = y[:2]
+    key = jax.random.key(7)
+    out = np.asarray(synthesize_texton(key, t, 40, start, innovations=p))
+    v = np.asarray(draw_innovations(key, p, (38, t.state_dim), jnp.float64, t.dof))
+    A1, A2, d, B, C, mu = (np.asarray(a) for a in (t.A1, t.A2, t.d, t.B, t.C, t.mu))
+    x = list((start - mu) @ C)
+    for j in range(38):
+        x.append(A1 @ x[-1] + A2 @ x[-2] + d + B @ v[j])
+    assert np.allclose(out, mu + np.asarray(x) @ C.T, atol=1e-9)
+    white = np.asarray(synthesize_texton(key, t, 40, start))
+    assert not np.allclose(out, white)
+    end = y[-2:]
+    held = np.asarray(synthesize_texton(key, t, 40, start, end, innovations=p))
+    assert np.allclose(held[-2:], mu + ((end - mu) @ C) @ C.T, atol=1e-8)
+    assert np.allclose(held[:2], mu + ((start - mu) @ C) @ C.T, atol=1e-8)
+    with pytest.raises(TypeError, match="InnovationProcess"):
+        synthesize_texton(key, t, 40, start, innovations=np.zeros(4))

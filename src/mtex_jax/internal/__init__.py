@@ -27,6 +27,12 @@ from ..motion._rotation import wrap_angle as wrap_angle
 # texton synthesis: whether the bridge recursion is accurate for a texton and length
 from ..texture._bridge import _bridge_usable as bridge_usable
 
+# texton synthesis noise: Box-Muller standard normals and the polynomial cos/sin of 2πu
+from ..texture._draws import (
+    _sincos_turn as sincos_turn,
+    _standard_normal as standard_normal,
+)
+
 # texton fitting: the traced kernel, for eqx.debug.get_num_traces
 from ..texture._fit import _fit_texton_traced as fit_texton_traced
 
@@ -69,12 +75,8 @@ from ..texture._normal import (
 # path synthesis: the core computation of a whole texton path (one compilation per size)
 from ..texture._sequence import _path_core as path_core
 
-# texton synthesis noise: Box-Muller standard normals and the polynomial cos/sin of 2πu
-from ..texture._synthesis import (
-    _draw_noise as draw_noise,
-    _sincos_turn as sincos_turn,
-    _standard_normal as standard_normal,
-)
+# texton synthesis noise of one texton: independent or from an innovation process
+from ..texture._synthesis import _draw_noise as draw_noise
 
 # the array fields of a Texton, in file order
 from ..texture._texton import _TEXTON_FIELDS as TEXTON_FIELDS

@@ -46,7 +46,7 @@ from jax import lax
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float
 
-from ._synthesis import _standard_normal
+from ._draws import _standard_normal
 from ._texton import Texton
 
 __all__ = [

@@ -44,11 +44,12 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..core import MAX_GENERATED_FRAMES, check_count, check_key
 from ..motion import Motion
+from ._draws import _innovations
 from ._innovation_process import draw_innovations
 from ._keyposes import _instances, _successor
 from ._model import MotionTexture
 from ._paths import random_path
-from ._synthesis import Weighting, _constrained, _innovations
+from ._synthesis import Weighting, _constrained
 from ._texton import Texton
 
 _PAD_TEXTONS = 8  # the path axis is padded to a multiple of this (compilation sharing)

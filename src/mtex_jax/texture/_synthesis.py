@@ -32,11 +32,9 @@ frames; ``O(l·k²)`` per sample, 3–4× faster than the banded solve for one t
 
 from __future__ import annotations
 
-import math
 from typing import Any, Literal
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -45,6 +43,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ..core import MAX_GENERATED_FRAMES, check_count, check_key
 from ._bridge import _bridge, _bridge_usable
+from ._draws import _innovations
+from ._innovation_process import InnovationProcess, draw_innovations
 from ._normal import _equations, _observe, _solve_constrained
 from ._texton import Texton
 from ._validate import check_finite_output
@@ -73,6 +73,7 @@ def synthesize_texton(
     end: Float[ArrayLike, "2 D"] | None = None,
     fixed: tuple[Bool[ArrayLike, " l"], Float[ArrayLike, "l D"]] | None = None,
     weighting: Weighting = "whitened",
+    innovations: InnovationProcess | None = None,
 ) -> Float[Array, "l D"]:
     """Synthesise ``length`` frames from one texton, noise-driven or constrained (MT §5.4).
 
@@ -91,7 +92,9 @@ def synthesize_texton(
       equations are not part of the least squares, which for an unstable texton would be
       as ill-conditioned as ``ρ^(2·tail)``).
 
-    How the key is used: in every mode it gives the noise of the dynamics equations,
+    How the key is used: in every mode it gives the noise of the dynamics equations (with
+    ``innovations``, a texture's :class:`~mtex_jax.texture.InnovationProcess`, drawn from it
+    by :func:`~mtex_jax.texture.draw_innovations` instead, as :func:`synthesize` does; else),
     ``v`` ``(l−2, k)`` standard normal, by the Box–Muller transform of
     ``jax.random.uniform(key, (2, ⌈(l−2)k/2⌉))`` (cheaper than ``jax.random.normal`` in
     float64 on CPU; cosines first, then sines, in row-major order). The
@@ -122,6 +125,9 @@ def synthesize_texton(
         end: ``(2, D)`` last two frames, or ``None``.
         fixed: ``(mask (l,) bool, poses (l, D))`` extra held frames, or ``None``.
         weighting: ``"whitened"`` (default) or ``"paper"``.
+        innovations: ``None`` (default: independent innovations) or the
+            :class:`~mtex_jax.texture.InnovationProcess` to draw them from (e.g.
+            ``texture.innovations``).
 
     Returns:
         ``(l, D)`` observations ``μ + C x_t``; held frames equal ``μ + C Cᵀ(y − μ)`` of the
@@ -161,72 +167,31 @@ def synthesize_texton(
             )
         poses = _check_frames("fixed poses", fixed[1], (length, D))
         fixed_a = (mask, poses)
+    if innovations is not None and not isinstance(innovations, InnovationProcess):
+        raise TypeError(
+            f"innovations must be an InnovationProcess or None, got {type(innovations).__name__}"
+        )
     # the noise is drawn inside the jitted core: one dispatch per call, not two
     if end_a is None and fixed_a is None:
-        out = _noise_driven_key_jit(texton, key, length, start_a)
+        out = _noise_driven_key_jit(texton, key, length, start_a, innovations)
     else:
-        out = _constrained_key_jit(texton, key, length, start_a, end_a, fixed_a, weighting)
+        out = _constrained_key_jit(
+            texton, key, length, start_a, end_a, fixed_a, weighting, innovations
+        )
     check_finite_output(out, texton, "synthesize_texton")
     return out
 
 
-def _sincos_turn(u: Array) -> tuple[Array, Array]:
-    """``(cos 2πu, sin 2πu)`` for ``u ∈ [0, 1)``: quadrant from ``⌊4u⌋``, then Taylor
-    polynomials of degree 24/25 on ``[0, π/2)`` (truncation below 1e-18; measured error
-    ≤ 8e-16 in float64 against numpy). On CPU about 8× cheaper than ``jnp.cos`` and
-    ``jnp.sin`` in float64, whose general range reduction is the cost of Box–Muller.
-    """
-    q4 = 4 * u
-    q = jnp.floor(q4)
-    phi = (q4 - q) * (np.pi / 2)
-    x2 = phi * phi
-    sp = jnp.zeros_like(phi)
-    cp = jnp.zeros_like(phi)
-    for j in range(12, -1, -1):  # Horner in φ²: Σ (−1)^j φ^{2j+1}/(2j+1)!, Σ (−1)^j φ^{2j}/(2j)!
-        sp = sp * x2 + (-1) ** j / math.factorial(2 * j + 1)
-        cp = cp * x2 + (-1) ** j / math.factorial(2 * j)
-    sp = phi * sp
-    quad = q.astype(jnp.int32) & 3  # rotate by quad · 90°
-    cos = jnp.where(quad == 0, cp, jnp.where(quad == 1, -sp, jnp.where(quad == 2, -cp, sp)))
-    sin = jnp.where(quad == 0, sp, jnp.where(quad == 1, cp, jnp.where(quad == 2, -sp, -cp)))
-    return cos, sin
-
-
-def _standard_normal(key: Array, shape: tuple[int, ...], dtype: Any) -> Array:
-    """Standard normal variates from ``key`` by the Box–Muller transform.
-
-    ``z = √(−2 log(1 − u₁)) (cos 2πu₂, sin 2πu₂)`` for ``u = jax.random.uniform(key, (2, h))``
-    (``h = ⌈size/2⌉``; the cosines first, then the sines, truncated to ``size``;
-    :func:`_sincos_turn`). Exactly ``N(0, 1)`` up to the resolution of the uniforms; on CPU
-    about a third of the cost of ``jax.random.normal`` in float64, whose inverse error
-    function dominated the time of a synthesis.
-    """
-    size = int(np.prod(shape))
-    u = jax.random.uniform(key, (2, (size + 1) // 2), dtype)
-    r = jnp.sqrt(-2.0 * jnp.log1p(-u[0]))  # 1 − u ∈ (0, 1]
-    cos, sin = _sincos_turn(u[1])
-    return jnp.concatenate([r * cos, r * sin])[:size].reshape(shape)
-
-
-def _innovations(key: Array, shape: tuple[int, ...], dtype: Any, dof: float | None) -> Array:
-    """Standardised innovations ``v (…, k)`` of textons with ``Texton.dof``: ``N(0, I)``
-    (:func:`_standard_normal`) for Gaussian textons; for Student-t ones the scale mixture
-    ``v = z / √g``, ``z ~ N(0, I_k)``, ``g ~ Gamma(ν/2, rate ν/2)`` per row, so that
-    ``B v ~ t_ν(0, B Bᵀ)``."""
-    if dof is None:
-        return _standard_normal(key, shape, dtype)
-    k_z, k_g = jax.random.split(key)
-    z = _standard_normal(k_z, shape, dtype)
-    g = jax.random.gamma(k_g, dof / 2, shape[:-1], dtype) / (dof / 2)
-    return z / jnp.sqrt(g)[..., None]
-
-
-def _draw_noise(tex: Texton, key: Array | None, length: int) -> Array:
+def _draw_noise(
+    tex: Texton, key: Array | None, length: int, process: InnovationProcess | None = None
+) -> Array:
     """``v_j``, ``j = 2 … l−1``: ``(l−2, k)`` from :func:`_innovations` (``N(0, I_k)`` for
-    Gaussian textons); 0 if no key."""
+    Gaussian textons), or from ``process`` (:func:`draw_innovations`); 0 if no key."""
     shape = (length - 2, tex.C.shape[-1])
     if key is None:
         return jnp.zeros(shape, tex.mu.dtype)
+    if process is not None:
+        return draw_innovations(key, process, shape, tex.mu.dtype, tex.dof)
     return _innovations(key, shape, tex.mu.dtype, tex.dof)
 
 
@@ -249,8 +214,14 @@ def _noise_driven(tex: Texton, v: Array, start: Array) -> Array:
     return tex.mu + states @ tex.C.T
 
 
-def _noise_driven_key(tex: Texton, key: Array | None, length: int, start: Array) -> Array:
-    return _noise_driven(tex, _draw_noise(tex, key, length), start)
+def _noise_driven_key(
+    tex: Texton,
+    key: Array | None,
+    length: int,
+    start: Array,
+    process: InnovationProcess | None = None,
+) -> Array:
+    return _noise_driven(tex, _draw_noise(tex, key, length, process), start)
 
 
 _noise_driven_key_jit = eqx.filter_jit(_noise_driven_key)
@@ -311,8 +282,10 @@ def _constrained_key(
     end: Array | None,
     fixed: tuple[Array, Array] | None,
     weighting: str,
+    process: InnovationProcess | None = None,
 ) -> Array:
-    return _constrained(tex, _draw_noise(tex, key, length), start, end, fixed, weighting)
+    v = _draw_noise(tex, key, length, process)
+    return _constrained(tex, v, start, end, fixed, weighting)
 
 
 _constrained_key_jit = eqx.filter_jit(_constrained_key)
