@@ -149,9 +149,9 @@ def main() -> None:
     kp, span = np.asarray(tex.key_poses), float(np.abs(np.asarray(tex.key_poses)).max())
     runs, runs_f = [], []
     for i in range(tex.n_textons):
-        args = (jax.random.key(i), tex.textons[i], 10_000, kp[lab == i][0])
-        runs.append(np.asarray(synthesize_texton(*args)))  # independent innovations
-        runs_f.append(np.asarray(synthesize_texton(*args, innovations=tex.innovations)))
+        run = (jax.random.key(i), tex.textons[i], 10_000, kp[lab == i][0])
+        runs.append(np.asarray(synthesize_texton(*run)))  # independent innovations
+        runs_f.append(np.asarray(synthesize_texton(*run, innovations=tex.innovations)))
     res["texture"]["noise_driven_10k"] = dict(
         finite=bool(all(np.isfinite(r).all() for r in runs + runs_f)),
         max_over_key_pose_range=float(max(np.abs(r).max() for r in runs) / span),
