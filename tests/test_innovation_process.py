@@ -27,7 +27,7 @@ from mtex_jax.texture import (
     segment_innovations,
     synthesize_texton,
 )
-from mtex_jax.texture._innovation_process import _scale_chain
+from mtex_jax.texture._innovation_process import _draw_innovations, _scale_chain
 
 R4 = (0.3, -0.4, -0.1, 0.05)
 
@@ -99,10 +99,18 @@ def test_bad_processes_and_statistics_are_rejected():
         process_from_statistics(np.ones(3))
     with pytest.raises(ValueError, match="innovations"):
         LearnConfig(innovations="pink")
+    key = jax.random.key(0)
+    with pytest.raises(TypeError, match="InnovationProcess"):
+        draw_innovations(key, np.zeros(4), (3, 2), jnp.float64, None)  # type: ignore[arg-type]
+    for bad in [(5,), (0, 3), (2, 4, 0)]:
+        with pytest.raises(ValueError, match=r"shape must be \(\.\.\., n, k\)"):
+            draw_innovations(key, _process(), bad, jnp.float64, 4.0)
+    with pytest.raises(ValueError, match="dof must be positive"):
+        draw_innovations(key, _process(), (4, 3), jnp.float64, 0.0)
 
 
 def test_draws_compile_once_per_shape():
-    draw = eqx.debug.assert_max_traces(draw_innovations, max_traces=1)
+    draw = eqx.debug.assert_max_traces(_draw_innovations, max_traces=1)
     jitted = eqx.filter_jit(draw)
     p = _process()
     a = jitted(jax.random.key(0), p, (3, 20, 2), jnp.float64, 4.0)
@@ -174,6 +182,9 @@ def test_learn_fits_the_process_on_the_training_residuals(tmp_path):
 def test_float32_smoke():
     v = draw_innovations(jax.random.key(0), _process(), (2, 16, 3), jnp.float32, 4.0)
     assert v.dtype == jnp.float32 and np.isfinite(np.asarray(v)).all()
+    # shape parameters near 0 (ρ = 0.999, a ν of 1): the chain stays positive and finite
+    g = np.asarray(_scale_chain(jax.random.key(1), 0.5, jnp.asarray(0.999), (400, 50), jnp.float32))
+    assert g.dtype == np.float32 and np.isfinite(g).all() and (g > 0).all()
 
 
 def test_synthesize_texton_draws_from_a_process():

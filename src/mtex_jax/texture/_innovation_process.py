@@ -230,7 +230,7 @@ def _filter(process: InnovationProcess, dtype: jnp.dtype) -> tuple[Array, Array,
     return phi, s, jnp.linalg.cholesky(R)
 
 
-def draw_innovations(
+def _draw_innovations(
     key: Array, process: InnovationProcess, shape: tuple[int, ...], dtype, dof: float | None
 ) -> Array:
     """Innovations ``v`` of shape ``(…, n, k)`` (time on axis −2) from ``process``.
@@ -238,7 +238,25 @@ def draw_innovations(
     Each leading index is an independent stretch; along time the scale chain and the AR filter
     of the module docstring run from their stationary laws. ``dof=None``: Gaussian textons
     (``w = z``, no scale chain).
+
+    The stationary start ``(v_{−1} … v_{−p})`` is Gaussian with the covariance
+    ``var(w) R_p``; for ``ν ≤ 2`` (infinite variance) ``var(w)`` is taken as 1.
+
+    Raises:
+        TypeError: ``process`` is not an :class:`InnovationProcess`.
+        ValueError: ``shape`` has fewer than two axes or an empty one; ``dof`` not positive.
     """
+    if not isinstance(process, InnovationProcess):
+        raise TypeError(
+            f"draw_innovations: process must be an InnovationProcess, got {type(process).__name__}"
+        )
+    shape = tuple(int(s) for s in shape)
+    if len(shape) < 2 or min(shape) < 1:
+        raise ValueError(
+            f"draw_innovations: shape must be (..., n, k) with every axis ≥ 1, got {shape}"
+        )
+    if dof is not None and not float(dof) > 0:
+        raise ValueError(f"draw_innovations: dof must be positive or None, got {dof}")
     n, batch = shape[-2], shape[:-2]
     k_z, k_0, k_g = jax.random.split(key, 3)
     z = _standard_normal(k_z, shape, dtype)
@@ -260,19 +278,39 @@ def draw_innovations(
     return jnp.moveaxis(v, 0, -2)
 
 
+draw_innovations = eqx.filter_jit(_draw_innovations)
+
+
 def _scale_chain(key: Array, a: float, rho: Array, shape: tuple[int, ...], dtype) -> Array:
     """``g`` ``(n, …)``: the beta–gamma AR(1) chain along axis 0 with ``Gamma(a, rate a)``
-    marginals and lag-1 correlation ``ρ`` (independent draws when ``ρ = 0``)."""
-    k0, kb, kc = jax.random.split(key, 3)
-    r = jnp.clip(rho, 1e-6, _RHO_MAX)
-    g0 = jax.random.gamma(k0, a, shape[1:], dtype) / a
-    b = jax.random.beta(kb, a * r, a * (1 - r), shape, dtype)
-    c = jax.random.gamma(kc, a * (1 - r), shape, dtype) / a
+    marginals and lag-1 correlation ``ρ`` (independent draws when ``ρ = 0``).
+
+    All gamma variates come from one :func:`jax.random.loggamma` call (one sampler to
+    compile, not five): ``log X ~ logGamma(aρ)``, ``log Y, log c ~ logGamma(a(1 − ρ))`` and
+    ``log(a g_0) ~ logGamma(a)``; ``b = X / (X + Y)`` is formed in log space, which stays
+    finite where ``X`` and ``Y`` underflow (shape parameters near 0). ``ρ = 0`` sets ``b = 0``,
+    so that ``g_j = c_j ~ Gamma(a, rate a)``.
+    """
+    n_b = int(np.prod(shape[1:]))
+    size = shape[0] * n_b
+    on = rho > 0
+    r = jnp.where(on, jnp.clip(rho, 1e-6, _RHO_MAX), 0.0).astype(dtype)
+    alpha = jnp.concatenate(
+        [
+            jnp.full((size,), a * jnp.maximum(r, 1e-6), dtype),  # X
+            jnp.full((2 * size,), a * (1 - r), dtype),  # Y, c
+            jnp.full((n_b,), a, dtype),  # g_0
+        ]
+    )
+    lg = jax.random.loggamma(key, alpha, dtype=dtype)
+    lx, ly, lc = lg[:size], lg[size : 2 * size], lg[2 * size : 3 * size]
+    b = jnp.where(on, jnp.exp(lx - jnp.logaddexp(lx, ly)), 0.0).reshape(shape)
+    c = (jnp.exp(lc) / a).reshape(shape)
+    g0 = (jnp.exp(lg[3 * size :]) / a).reshape(shape[1:])
 
     def step(g: Array, bc: tuple[Array, Array]) -> tuple[Array, Array]:
         g = bc[0] * g + bc[1]
         return g, g
 
     _, chain = lax.scan(step, g0, (b, c))
-    iid = jax.random.gamma(kc, a, shape, dtype) / a
-    return jnp.where(rho > 0, chain, iid)
+    return chain

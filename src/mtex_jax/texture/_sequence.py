@@ -57,8 +57,6 @@ _PAD_FRAMES = 16  # and the per-texton length to a multiple of this
 
 Residual = Literal["blend", "subspace"]
 
-_draw_innovations_jit = eqx.filter_jit(draw_innovations)
-
 
 class Synthesis(eqx.Module):
     """A synthesised sequence.
@@ -267,7 +265,7 @@ def _synthesize_path(
     elif texture.innovations is None:
         v = _innovations(key, (n_pad, l_pad - 2, k), dt, tex.dof)
     else:  # each texton's stretch of innovations from the fitted process
-        v = _draw_innovations_jit(key, texture.innovations, (n_pad, l_pad - 2, k), dt, tex.dof)
+        v = draw_innovations(key, texture.innovations, (n_pad, l_pad - 2, k), dt, tex.dof)
     out = _path_core_jit(
         tex,
         jnp.asarray(lab_p),
