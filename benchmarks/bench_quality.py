@@ -26,7 +26,9 @@ Rows, measured in one run:
    synthesis (MT Fig. 7b: each texton run from the previous frames without end constraints,
    by ``synthesize_texton`` with the texture's innovation process), the implicit model's tree
    and exact samplers from held-out start windows, AR(2) samples, and the real held-out clips.
-3. **Cost**: learn time; forward algorithm against the Viterbi on the same scores.
+3. **Profile** (``quality_profile.py``): quantiles of joint |a| and |j| of the texture's
+   syntheses and of the real clips, and their W1 to the training clips beside the held-out.
+4. **Cost**: learn time; forward algorithm against the Viterbi on the same scores.
 
 Run: ``.venv/bin/python benchmarks/bench_quality.py`` (``--quick`` for a smoke run). Writes
 ``benchmarks/results/quality.md`` and ``quality.json``.
@@ -61,6 +63,7 @@ from mtex_jax.texture import (
     viterbi_segments,
 )
 from quality_generators import ar2_samples, noise_driven
+from quality_profile import lines, profile
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
@@ -90,9 +93,6 @@ def load(names: list[str]) -> list[mj.Motion]:
     return [mj.read_bvh(SHARED / "data" / "cmu-salsa" / f"{n}.bvh")[4:] for n in names]
 
 
-# --------------------------------------------------------------------------------------------
-# the run
-# --------------------------------------------------------------------------------------------
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="smoke run: fewer syntheses, short EM")
@@ -306,6 +306,11 @@ def main() -> None:
     if nd_motions:
         rows["texture noise-driven"] = judge.judge(nd_motions, boundaries=nd_bounds)
         rows["texture noise-driven"]["failed"] = float(nd_fail)
+    log("profile: quantiles of |a| and |j|; W1 to the training and to the held-out clips")
+    sets = {"texture constrained (sampled noise)": [s.motion for s in syn]}
+    sets["the same paths, independent innovations"] = [s.motion for s in syn_w]
+    sets["the same syntheses, cleaned"] = [c.motion for c in syn_c]
+    res["profile"] = profile(sets, train, held, FPS)
 
     log("AR(2) samples from held-out start pairs")
     ar = metrics.fit_ar2(train_y)
@@ -359,9 +364,6 @@ def main() -> None:
     log(f"done in {res['total_s']:.0f} s: {args.out}")
 
 
-# --------------------------------------------------------------------------------------------
-# the report
-# --------------------------------------------------------------------------------------------
 def _f(x: Any, nd: int = 3) -> str:
     if x is None:
         return "—"
@@ -480,8 +482,10 @@ def write(res: dict[str, Any], out: Path) -> None:
         f"{100 * imp.get('paper_explained_variance', float('nan')):.0f} %), built in "
         f"{imp['learn_s']:.1f} s; sampled with β = 1, no added noise, default synthesis "
         "options (`SynthesisConfig()`); the paper-settings row uses `SynthesisConfig.paper()`.",
-        "",
     ]
+    if "profile" in res:
+        L += lines(res["profile"])
+    L.append("")
     tmp = out.with_suffix(".md.tmp")
     tmp.write_text("\n".join(L) + "\n")
     tmp.replace(out)

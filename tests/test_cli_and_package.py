@@ -51,10 +51,13 @@ def test_errors_are_one_line_without_traceback(tmp_path):
     assert r.returncode == 2 and "unknown example" in r.stderr
 
 
-def test_help_texts():
+def test_help_texts(capsys):
+    # the installed entry point once, as a subprocess; every command's parser in-process
+    r = run_cli("--help")
+    assert r.returncode == 0 and "usage: mtex" in r.stdout
     for cmd in ["info", "render", "demo", "examples", "learn", "segment", "synth", "choreograph"]:
-        r = run_cli(cmd, "--help")
-        assert r.returncode == 0 and "usage: mtex" in r.stdout, cmd
+        assert main([cmd, "--help"]) == 0, cmd
+        assert f"usage: mtex {cmd}" in capsys.readouterr().out, cmd
 
 
 def test_render_command_writes_gif_and_png(tmp_path, capsys):

@@ -151,6 +151,7 @@ def test_an_infeasible_request_is_reported_not_nan(tex, syn):
     assert "NOT all constraints met" in text and "nan" not in text.lower()
 
 
+@pytest.mark.slow  # the default run checks the same solver in float32 (test_edit_banded)
 def test_float32_smoke(tex, syn):
     sk = tex.feature_map.skeleton
     hand = _hand(tex)
@@ -183,11 +184,10 @@ def test_no_recompile_for_the_same_shapes(tex, syn):
         assert float(out.position_error[0]) < 1e-3
 
 
-@pytest.mark.parametrize(
-    "solver",
-    # lm: the default run's budget (about 15 min); CI runs it after
-    ["auto", pytest.param("lm", marks=pytest.mark.slow)],
-)
+# the default run's budget (about 15 min); CI runs it after. The default solver's batch is
+# also checked in the default run by test_edit_banded's test_edit_many_is_a_vmap_batch_...
+@pytest.mark.slow
+@pytest.mark.parametrize("solver", ["auto", "lm"])
 def test_edit_many_matches_single_edits(tex, syn, solver):
     """Both solvers; the Levenberg–Marquardt batch factorises its whitening one motion at a
     time under vmap (a batched one did not finish in minutes on the CPU backend)."""

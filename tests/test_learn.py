@@ -428,6 +428,7 @@ def test_greedy_prediction_errors_equal_the_direct_formula():
     np.testing.assert_allclose(got[3:], np.broadcast_to(got[2], got[3:].shape), rtol=1e-12)
 
 
+@pytest.mark.slow  # the default run has the same check on synthetic clips (test_observation_models)
 def test_default_texture_of_the_training_clips_stays_in_range_when_noise_driven(cmu_dir):
     """Issue 16's stability criterion on real data: the default texture of the quality split's
     10 training clips (60 Hz), every texton run by its dynamics with sampled noise for 10,000
