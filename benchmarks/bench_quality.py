@@ -22,23 +22,29 @@ Rows, measured in one run:
    penetration, jumps above the real p99, novelty, copying): the texture's constrained
    synthesis (sampled noise from the texture's fitted innovation process; the same
    syntheses cleaned by ``mtex_jax.edit.clean`` with the training clips' contact model;
-   independent innovations, the default before the process; zero noise), its noise-driven
-   synthesis (MT Fig. 7b: each texton run from the previous frames without end constraints,
-   by ``synthesize_texton`` with the texture's innovation process), the implicit model's tree
-   and exact samplers from held-out start windows, AR(2) samples, and the real held-out clips.
+   independent innovations, the default before the process; zero noise; innovations replayed
+   in blocks from the training residuals, ``LearnConfig(innovations="residuals")``), its
+   noise-driven synthesis (MT Fig. 7b: each texton run from the previous frames without end
+   constraints, by ``synthesize_texton`` with the texture's innovation process), the implicit
+   model's tree and exact samplers from held-out start windows, AR(2) samples, and the real
+   held-out clips.
 3. **Profile** (``quality_profile.py``): quantiles of joint |a| and |j| of the texture's
    syntheses and of the real clips, and their W1 to the training clips beside the held-out.
-4. **Cost**: learn time; forward algorithm against the Viterbi on the same scores.
+   The sampling error of the headline row and of the residual-innovations row over five
+   more seeds.
+4. **Replay** (``quality_replay.py``): the training clips run again through the texture's
+   dynamics along their own segmentation with their own, shuffled, fitted or independent
+   innovations: how much of the gap the innovations can close at all.
+5. **Cost**: learn time; forward algorithm against the Viterbi on the same scores.
 
 Run: ``.venv/bin/python benchmarks/bench_quality.py`` (``--quick`` for a smoke run). Writes
-``benchmarks/results/quality.md`` and ``quality.json``.
+``benchmarks/results/quality.md`` and ``quality.json`` (the report: ``quality_report.py``).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import platform
 import sys
@@ -58,12 +64,15 @@ from mtex_jax import metrics
 from mtex_jax.edit import clean
 from mtex_jax.texture import (
     forward_log_likelihood,
+    residual_bank,
     segment_scores,
     synthesize_texton,
     viterbi_segments,
 )
 from quality_generators import ar2_samples, noise_driven
-from quality_profile import lines, profile, seed_spread, spread_lines
+from quality_profile import SEEDS, profile, seed_spread
+from quality_replay import replay
+from quality_report import write
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
@@ -75,6 +84,7 @@ PAPER_CFG = mj.LearnConfig.paper(tmin=60, tmax=180, fps=FPS, min_segments=3)
 IMPLICIT_FPS = 30.0
 SECONDS = 20.0
 SEED = 2026  # the keys of every generated set
+BOOT_ROW = "texture, residual innovations (block bootstrap), constrained (sampled noise)"
 
 
 def log(msg: str) -> None:
@@ -287,6 +297,12 @@ def main() -> None:
     rows["texture constrained (sampled noise), cleaned"] = judge.judge(
         [c.motion for c in syn_c], boundaries=[s.boundaries() for s in syn]
     )
+    log("texture: constrained synthesis, innovations replayed from the training residuals")
+    boot = dataclasses.replace(tex, residuals=residual_bank(tex.textons, train_y, tex.segments))
+    syn_b = [mj.synthesize(k, boot, n_frames=n_frames) for k in keys]
+    rows[BOOT_ROW] = judge.judge(
+        [s.motion for s in syn_b], boundaries=[s.boundaries() for s in syn_b]
+    )
     for tag, v in variants.items():
         log(f"texture with {tag}: constrained synthesis, sampled noise")
         sv = [mj.synthesize(k, v, n_frames=n_frames) for k in keys]
@@ -311,9 +327,15 @@ def main() -> None:
     sets = {"texture constrained (sampled noise)": [s.motion for s in syn]}
     sets["the same paths, independent innovations"] = [s.motion for s in syn_w]
     sets["the same syntheses, cleaned"] = [c.motion for c in syn_c]
+    sets["residual innovations (block bootstrap)"] = [s.motion for s in syn_b]
     res["profile"] = profile(sets, train, held, FPS)
     log("sampling error of the headline row: the same synthesis with other seeds")
-    res["seed_spread"] = seed_spread(judge, tex, n_frames, n_syn, [1, 2, 3, 4, 5][: n_syn // 2 + 1])
+    res["seed_spread"] = seed_spread(judge, tex, n_frames, n_syn, SEEDS[: n_syn // 2 + 1])
+    res["seed_spread_residuals"] = seed_spread(
+        judge, boot, n_frames, n_syn, SEEDS[: n_syn // 2 + 1]
+    )
+    log("replay of the training clips through the texture: innovations or dynamics?")
+    res["replay"] = replay(tex, train, FPS, SEED, judge.floor)
 
     log("AR(2) samples from held-out start pairs")
     ar = metrics.fit_ar2(train_y)
@@ -363,137 +385,8 @@ def main() -> None:
     res["rows"] = rows
     res["total_s"] = time.perf_counter() - t_start
     res["machine"]["load_after"] = os.getloadavg()
-    write(res, args.out)
+    write(res, args.out, SEED)
     log(f"done in {res['total_s']:.0f} s: {args.out}")
-
-
-def _f(x: Any, nd: int = 3) -> str:
-    if x is None:
-        return "—"
-    if isinstance(x, float) and not np.isfinite(x):
-        return str(x)
-    return f"{x:.{nd}f}" if isinstance(x, float) else str(x)
-
-
-def _innovations_text(p: dict[str, Any] | None) -> str:
-    if p is None:
-        return " Synthesis draws independent innovations."
-    acf = ", ".join(f"{r:.2f}" for r in p["acf"])
-    return (
-        " Synthesis innovations (fitted on the training residuals): autocorrelation "
-        f"{acf} at lags 1–{len(p['acf'])}, scale persistence {p['persistence']:.3f}."
-    )
-
-
-def write(res: dict[str, Any], out: Path) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    js = out.with_suffix(".json")
-    js.write_text(json.dumps(res, indent=1, default=float))
-    t = res["texture"]
-    L = [
-        "# Motion quality on the held-out split",
-        "",
-        "`benchmarks/bench_quality.py`, one run; raw numbers in `quality.json`. Split fixed by",
-        f"`shared/data/README.md`: train {', '.join(res['split']['train'])}; held out "
-        f"{', '.join(res['split']['held_out'])} ({res['frames']['train']:,} / "
-        f"{res['frames']['held']:,} frames at 60 Hz). Machine: {res['machine']['cpus']} CPUs, "
-        f"load {res['machine']['load_before'][0]:.1f} before, "
-        f"{res['machine']['load_after'][0]:.1f} after; total {res['total_s']:.0f} s.",
-        "",
-        f"Texture (README settings, 60 Hz; observation model {t.get('observation')}, "
-        f"k = {t.get('state_dim')}, {t.get('innovations')} innovations, "
-        f"{t.get('durations')} durations): "
-        f"{t['textons']} textons from {t['segments']} "
-        f"segments ({t['segments_per_texton']:.2f} per texton, "
-        f"{100 * t['single_segment_share']:.0f} % with a single segment), largest spectral "
-        f"radius {t['spectral_radius_max']:.3f}, learned in {t['learn_s']:.1f} s. Every "
-        f"texton run by its dynamics with sampled noise for 10,000 frames from its key poses: "
-        f"finite {t['noise_driven_10k']['finite']}, largest |y| "
-        f"{t['noise_driven_10k']['max_over_key_pose_range']:.2f}× the key poses' largest "
-        "with independent innovations, "
-        f"{t['noise_driven_10k'].get('max_over_key_pose_range_fitted', float('nan')):.2f}× "
-        "with the fitted innovation process." + _innovations_text(t.get("synthesis_innovations")),
-        "",
-        "## Density and one-step prediction (held-out clips, texture's observation vectors)",
-        "",
-        "| model | log-likelihood / frame (nats) | median frame | worst frame "
-        "| one-step MSE / dim (z²) |",
-        "| --- | ---: | ---: | ---: | ---: |",
-    ]
-    for name, r in res["density"].items():
-        L.append(
-            f"| {name} | {r['loglik_per_frame']:.2f} | {_f(r.get('median_frame'), 1)} "
-            f"| {_f(r.get('worst_frame'), 0)} | {r['prediction_mse']:.4f} |"
-        )
-    fc = res["forward_cost"]
-    L += [
-        "",
-        "The ARHMM's figure conditions on the first two frames of each clip (dynamax's inputs);",
-        "all other rows score every frame. The mean per frame is dominated by a few capture",
-        "glitches in the held-out clips (a single frame costs up to millions of nats under a",
-        "model that learned a near-constant channel); the median frame (texture: along the best",
-        "segmentation, transitions left out; baselines: one-step densities) shows typical",
-        "frames. Per clip (marginal ≥ best path on every clip):",
-        "",
-        "| clip | frames | marginal / frame | best path / frame |",
-        "| --- | ---: | ---: | ---: |",
-    ]
-    for c in res["per_clip"]:
-        n = c["frames"]
-        L.append(f"| {c['clip']} | {n} | {c['marginal'] / n:.2f} | {c['best_path'] / n:.2f} |")
-    L += [
-        "",
-        f"Forward algorithm vs Viterbi on the same segment scores ({fc['frames']:,} frames, "
-        f"{fc['textons']} textons): {fc['forward_s'] * 1e3:.0f} ms vs "
-        f"{fc['viterbi_s'] * 1e3:.0f} ms warm (median of 5, ratio {fc['ratio']:.2f}); "
-        f"first calls {fc['forward_first_call_s']:.1f} s / {fc['viterbi_first_call_s']:.1f} s.",
-        "",
-        "## Motion (each set against the held-out clips)",
-        "",
-        "Ratios divide each W1 distance by the real-vs-real floor (training vs held-out clips",
-        "at the same rate): 1.0 is as far from the held-out dancers as other real dancing is.",
-        "Skating: horizontal foot speed while the foot is low (m/s). Penetration: depth below",
-        "the training clips' lowest foot (m) and share of frames. Jumps: share of frame-to-",
-        "frame maximum joint jumps above the held-out clips' p99 (and at texton boundaries).",
-        "Novelty: median distance of 1 s windows to the nearest training window (m). Copy:",
-        "share of steps that continue the previous step's training frame, longest run (s).",
-        "",
-        "| set | speed | acc | jerk | skate med / p95 | pen. max / share | jumps > p99 "
-        "| boundary > p99 / max | novelty | copy / longest |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for name, r in res["rows"].items():
-        bnd = (
-            f"{_f(r.get('boundary_share_above_p99'), 2)} / {_f(r.get('boundary_max'), 3)}"
-            if "boundary_max" in r
-            else "—"
-        )
-        L.append(
-            f"| {name} | {_f(r['speed_ratio'], 2)} | {_f(r['acceleration_ratio'], 2)} "
-            f"| {_f(r['jerk_ratio'], 2)} | {_f(r['skating_median'], 2)} / "
-            f"{_f(r['skating_p95'], 2)} | {_f(r['penetration_max'], 3)} / "
-            f"{_f(r['penetration_share'], 3)} | {_f(r['jump_share_above_p99'], 3)} | {bnd} "
-            f"| {_f(r['novelty_median'], 3)} | {_f(r.get('copy_fraction'), 2)} / "
-            f"{_f(r.get('copy_longest_s'), 1)} |"
-        )
-    imp = res["implicit"]
-    L += [
-        "",
-        f"Implicit model: {imp['examples']:,} windows, {imp['components']} components "
-        f"explaining {100 * imp['explained_variance']:.0f} % of the window variance (body "
-        f"weighting; the paper's per-channel weighting: "
-        f"{100 * imp.get('paper_explained_variance', float('nan')):.0f} %), built in "
-        f"{imp['learn_s']:.1f} s; sampled with β = 1, no added noise, default synthesis "
-        "options (`SynthesisConfig()`); the paper-settings row uses `SynthesisConfig.paper()`.",
-    ]
-    if "seed_spread" in res:
-        L += spread_lines(res["seed_spread"], SEED)
-    if "profile" in res:
-        L += lines(res["profile"])
-    L.append("")
-    tmp = out.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(L) + "\n")
-    tmp.replace(out)
 
 
 if __name__ == "__main__":

@@ -145,11 +145,15 @@ def test_learn_and_segment_commands(tmp_path, cmu_files):
         "3",
         "--min-segments",
         "2",
+        "--innovations",
+        "residuals",
     )
     assert r.returncode == 0, r.stderr[-2000:]
     assert "textons:" in r.stdout and "[mtex learn] iter" in r.stdout
+    assert "blocks of the" in r.stdout  # the summary names the residual bank
     learned = mj.load_texture(model)
     assert learned.config.min_segments == 2
+    assert learned.config.innovations == "residuals" and learned.residuals is not None
     assert learned.textons.dof is None and learned.config.dof is None  # k = 8 < D: Gaussian
     assert np.bincount(np.asarray(learned.key_pose_labels)).min() >= 2
     png = tmp_path / "timeline.png"
@@ -162,6 +166,8 @@ def test_learn_and_segment_commands(tmp_path, cmu_files):
     assert r.returncode == 2 and "tmin" in r.stderr and "Traceback" not in r.stderr
     r = run_cli("learn", str(cmu_files[0]), "-o", str(model), "--min-segments", "0")
     assert r.returncode == 2 and "min_segments" in r.stderr and "Traceback" not in r.stderr
+    r = run_cli("learn", str(cmu_files[0]), "-o", str(model), "--innovations", "bootstrap")
+    assert r.returncode == 2 and "--innovations" in r.stderr and "Traceback" not in r.stderr
     for bad in ("0", "-2", "nan", "four"):
         r = run_cli("learn", str(cmu_files[0]), "-o", str(model), "--dof", bad)
         assert r.returncode == 2 and "--dof" in r.stderr and "Traceback" not in r.stderr

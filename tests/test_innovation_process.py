@@ -28,6 +28,7 @@ from mtex_jax.texture import (
     synthesize_texton,
 )
 from mtex_jax.texture._innovation_process import _draw_innovations, _scale_chain
+from mtex_jax.texture._learn import with_innovations
 
 R4 = (0.3, -0.4, -0.1, 0.05)
 
@@ -160,8 +161,10 @@ def test_learn_fits_the_process_on_the_training_residuals(tmp_path):
     np.savez(tmp_path / "bad.npz", **arrays)
     with pytest.raises(ValueError, match=r"bad\.npz.*come together"):
         load_texture(tmp_path / "bad.npz")
-    white = mj.learn(ys, dataclasses.replace(cfg, innovations="white"))
-    assert white.innovations is None
+    # innovations="white": learn's last step (with_innovations) leaves the model without one
+    white_cfg = dataclasses.replace(cfg, innovations="white")
+    white = with_innovations(dataclasses.replace(tex, config=white_cfg, innovations=None), ys)
+    assert white.innovations is None and white.residuals is None
     white.save(tmp_path / "w.npz")
     assert load_texture(tmp_path / "w.npz").innovations is None
     assert LearnConfig.paper().innovations == "white"

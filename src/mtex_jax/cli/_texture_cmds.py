@@ -61,6 +61,7 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         durations=args.durations,
         selection=args.selection,
         dof=args.dof,
+        innovations=args.innovations,
     )
     where = f"process {pid} of {n_proc}: " if args.distributed else ""
     print(
@@ -314,6 +315,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=("lognormal", "flat"),
         default="lognormal",
         help="segment-length distribution per texton (default lognormal; flat = the paper)",
+    )
+    s.add_argument(
+        "--innovations",
+        choices=("fitted", "white", "residuals"),
+        default="fitted",
+        help="innovations of synthesis: a process fitted on the training residuals (default), "
+        "independent (white, the paper) or blocks of the residuals themselves (residuals)",
     )
     s.add_argument(
         "--selection",

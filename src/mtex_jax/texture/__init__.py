@@ -79,6 +79,11 @@ from ._paths import (
     random_path as random_path,
     shortest_path as shortest_path,
 )
+from ._residual_bank import (
+    ResidualBank as ResidualBank,
+    draw_residuals as draw_residuals,
+    residual_bank as residual_bank,
+)
 from ._sample import (
     sample_texton as sample_texton,
 )
@@ -130,6 +135,7 @@ __all__ = [
     "LearnConfig",
     "MotionTexture",
     "RefineReport",
+    "ResidualBank",
     "SegmentScorer",
     "Segmentation",
     "Subspace",
@@ -145,6 +151,7 @@ __all__ = [
     "choreograph",
     "companion_matrix",
     "draw_innovations",
+    "draw_residuals",
     "dynamics_stats",
     "exact_log_likelihood",
     "exact_log_likelihood_segments",
@@ -169,6 +176,7 @@ __all__ = [
     "process_from_statistics",
     "random_path",
     "refine_texton",
+    "residual_bank",
     "sample_texton",
     "segment",
     "segment_innovations",

@@ -90,8 +90,10 @@ class LearnConfig:
             and synthesis draws innovations with the same per-frame law and those
             dependences (on the training clips of the salsa split, W₁ of the joints'
             ``|a|`` 2.66 instead of 4.10 m/s², of ``|j|`` 331 instead of 499 m/s³);
-            ``"white"``: independent from frame to frame (the paper). The likelihood is
-            that of independent innovations either way.
+            ``"white"``: independent from frame to frame (the paper); ``"residuals"``: the
+            process is fitted as well, and :func:`synthesize` replays blocks of the training
+            residuals themselves (:class:`ResidualBank`, a block bootstrap; single-process
+            learning only). The likelihood is that of independent innovations in every case.
         min_segments: prune textons that the segmentation gives fewer training segments: after
             each E-step they are removed (``M``, ``π`` renormalised) and the clips segmented
             again by the remaining textons, which EM then refits (a texton fitted on one
@@ -149,9 +151,10 @@ class LearnConfig:
             raise ValueError(
                 f"LearnConfig.selection must be 'bic' or 'none', got {self.selection!r}"
             )
-        if self.innovations not in ("fitted", "white"):
+        if self.innovations not in ("fitted", "white", "residuals"):
             raise ValueError(
-                f"LearnConfig.innovations must be 'fitted' or 'white', got {self.innovations!r}"
+                "LearnConfig.innovations must be 'fitted', 'white' or 'residuals', "
+                f"got {self.innovations!r}"
             )
         if self.durations not in ("flat", "lognormal"):
             raise ValueError(

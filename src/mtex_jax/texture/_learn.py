@@ -32,6 +32,7 @@ from ._innovation_process import (
 )
 from ._labels import _capacity, _keep_textons
 from ._model import MotionTexture
+from ._residual_bank import residual_bank
 from ._segment import _check_lengths
 from ._select import choose_state_dim, n_params
 
@@ -182,12 +183,13 @@ def with_innovations(
     reduce: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> MotionTexture:
     """``model`` with its :class:`InnovationProcess` fitted on the training residuals of its
-    segmentation (``config.innovations == "fitted"``; else unchanged).
+    segmentation (``config.innovations`` ``"fitted"`` or ``"residuals"``; the latter also
+    keeps the residuals themselves, a :class:`ResidualBank`); with ``"white"`` unchanged.
 
     ``ys`` are the clips numbered from ``offset`` in ``model.segments`` (a process's share
     of a distributed learn); ``reduce`` sums the statistics over processes.
     """
-    if model.config.innovations != "fitted":
+    if model.config.innovations == "white":
         return model
     rows = np.asarray(model.segments, dtype=np.int64)
     rows = rows[(rows[:, 0] >= offset) & (rows[:, 0] < offset + len(ys))]
@@ -195,7 +197,13 @@ def with_innovations(
     stats = innovation_statistics(segment_innovations(model.textons, ys, rows))
     if reduce is not None:
         stats = reduce(stats)
-    return dataclasses.replace(model, innovations=process_from_statistics(stats))
+    process = process_from_statistics(stats)
+    if model.config.innovations != "residuals":
+        return dataclasses.replace(model, innovations=process)
+    if offset or reduce is not None:
+        raise ValueError("LearnConfig.innovations='residuals' needs every clip in one process")
+    bank = residual_bank(model.textons, ys, model.segments)
+    return dataclasses.replace(model, innovations=process, residuals=bank)
 
 
 def _refit_config(config: LearnConfig) -> LearnConfig:

@@ -18,6 +18,7 @@ from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
 from ._forward import log_likelihood
 from ._innovation_process import InnovationProcess
+from ._residual_bank import ResidualBank
 from ._segment import Segmentation, segment
 from ._texton import Texton
 from ._validate import TEXTURE_MEMBERS, check_texture_arrays
@@ -47,6 +48,9 @@ class MotionTexture(eqx.Module):
             lengths ``tmin … tmax`` (``LearnConfig.durations``), or ``None``: flat (the paper).
         innovations: the :class:`InnovationProcess` synthesis draws innovations from, or
             ``None``: independent (``LearnConfig.innovations == "white"``, the paper).
+        residuals: the :class:`ResidualBank` of the training residuals, or ``None``. When
+            present (``LearnConfig.innovations == "residuals"``), :func:`synthesize` replays
+            blocks of it instead of drawing from ``innovations``.
         config: the :class:`LearnConfig` (static).
         threshold: the greedy-initialisation threshold used (static).
     """
@@ -64,6 +68,7 @@ class MotionTexture(eqx.Module):
     threshold: float = eqx.field(static=True)
     log_durations: Float[Array, "n L"] | None = None
     innovations: InnovationProcess | None = None
+    residuals: ResidualBank | None = None
 
     def __check_init__(self) -> None:
         n = self.textons.n_textons if self.textons.is_stacked else 1
@@ -180,6 +185,11 @@ class MotionTexture(eqx.Module):
         if self.innovations is not None:
             arrays["innovations.acf"] = np.asarray(self.innovations.acf)
             arrays["innovations.persistence"] = np.asarray(self.innovations.persistence)
+        if self.residuals is not None:
+            arrays["residuals.rows"] = np.asarray(self.residuals.rows)
+            arrays["residuals.starts"] = np.asarray(self.residuals.starts)
+            arrays["residuals.lengths"] = np.asarray(self.residuals.lengths)
+            arrays["residuals.labels"] = np.asarray(self.residuals.labels)
         meta: dict[str, Any] = {
             "kind": _KIND,
             "format_version": FORMAT_VERSION,
@@ -258,6 +268,7 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
                 None if "log_durations" not in arrays else jnp.asarray(arrays["log_durations"])
             ),
             innovations=_innovations_of(arrays),
+            residuals=_residuals_of(arrays, int(np.shape(arrays["M"])[0])),
             config=cfg,
             threshold=float(meta["threshold"]),
         )
@@ -278,6 +289,25 @@ def _innovations_of(arrays: dict[str, np.ndarray]) -> InnovationProcess | None:
     )
 
 
+def _residuals_of(arrays: dict[str, np.ndarray], n_textons: int) -> ResidualBank | None:
+    """The file's residual bank; ``None`` in files without one."""
+    names = ("residuals.rows", "residuals.starts", "residuals.lengths", "residuals.labels")
+    have = [k for k in names if k in arrays]
+    if not have:
+        return None
+    if len(have) != len(names):
+        raise ValueError(f"the arrays {', '.join(names)} come together")
+    labels = np.asarray(arrays["residuals.labels"])
+    if labels.size and labels.max() >= n_textons:
+        raise ValueError(f"residuals.labels outside [0, {n_textons})")
+    return ResidualBank(
+        rows=jnp.asarray(arrays["residuals.rows"]),
+        starts=jnp.asarray(arrays["residuals.starts"]),
+        lengths=jnp.asarray(arrays["residuals.lengths"]),
+        labels=jnp.asarray(labels),
+    )
+
+
 def texture_summary(tex: MotionTexture) -> str:
     """A short human-readable description (used by the CLI)."""
     st = tex.length_stats()
@@ -289,7 +319,9 @@ def texture_summary(tex: MotionTexture) -> str:
         + ("Gaussian" if tex.textons.dof is None else f"Student-t, {tex.textons.dof:g} dof"),
         "synthesis innovations: "
         + (
-            "independent"
+            f"blocks of the {np.shape(tex.residuals.rows)[0]} training residuals"
+            if tex.residuals is not None
+            else "independent"
             if tex.innovations is None
             else "autocorrelation "
             + ", ".join(f"{r:.2f}" for r in np.asarray(tex.innovations.acf))

@@ -49,6 +49,7 @@ from ._innovation_process import draw_innovations
 from ._keyposes import _instances, _successor
 from ._model import MotionTexture
 from ._paths import random_path
+from ._residual_bank import draw_residuals
 from ._synthesis import Weighting, _constrained
 from ._texton import Texton
 
@@ -262,6 +263,8 @@ def _synthesize_path(
     at_p = np.concatenate([end_at, np.full(pad, l_pad - 2)]).astype(np.int32)
     if key is None:
         v = jnp.zeros((n_pad, l_pad - 2, k), dt)
+    elif texture.residuals is not None:  # blocks of the training residuals
+        v = draw_residuals(key, texture.residuals, jnp.asarray(lab_p), l_pad - 2, dt)
     elif texture.innovations is None:
         v = _innovations(key, (n_pad, l_pad - 2, k), dt, tex.dof)
     else:  # each texton's stretch of innovations from the fitted process

@@ -22,6 +22,10 @@ TEXTURE_MEMBERS = (
     "log_durations",
     "innovations.acf",
     "innovations.persistence",
+    "residuals.rows",
+    "residuals.starts",
+    "residuals.lengths",
+    "residuals.labels",
 )
 
 _STOCHASTIC_TOL = 1e-6
