@@ -20,18 +20,18 @@ Rows, measured in one run:
 2. **Motion**, every generated set judged against the held-out clips (realism W1 of joint
    speed/acceleration/jerk and their ratio to the real-vs-real floor, foot skating, floor
    penetration, jumps above the real p99, novelty, copying): the texture's constrained
-   synthesis (sampled noise from the texture's fitted innovation process; the same
-   syntheses cleaned by ``mtex_jax.edit.clean`` with the training clips' contact model;
-   independent innovations, the default before the process; zero noise; innovations replayed
-   in blocks from the training residuals, ``LearnConfig(innovations="residuals")``), its
-   noise-driven synthesis (MT Fig. 7b: each texton run from the previous frames without end
+   synthesis (sampled noise: the default innovations, blocks replayed from the training
+   residuals; the same syntheses cleaned by ``mtex_jax.edit.clean`` with the training clips'
+   contact model; the fitted innovation process, ``LearnConfig(innovations="fitted")``, the
+   default before; independent innovations, the paper; zero noise), its noise-driven
+   synthesis (MT Fig. 7b: each texton run from the previous frames without end
    constraints, by ``synthesize_texton`` with the texture's innovation process), the implicit
    model's tree and exact samplers from held-out start windows, AR(2) samples, and the real
    held-out clips.
 3. **Profile** (``quality_profile.py``): quantiles of joint |a| and |j| of the texture's
    syntheses and of the real clips, and their W1 to the training clips beside the held-out.
-   The sampling error of the headline row and of the residual-innovations row over five
-   more seeds.
+   The sampling error of the headline row and of the fitted-process row over five more
+   seeds.
 4. **Replay** (``quality_replay.py``): the training clips run again through the texture's
    dynamics along their own segmentation with their own, shuffled, fitted or independent
    innovations: how much of the gap the innovations can close at all.
@@ -64,7 +64,6 @@ from mtex_jax import metrics
 from mtex_jax.edit import clean
 from mtex_jax.texture import (
     forward_log_likelihood,
-    residual_bank,
     segment_scores,
     synthesize_texton,
     viterbi_segments,
@@ -84,7 +83,7 @@ PAPER_CFG = mj.LearnConfig.paper(tmin=60, tmax=180, fps=FPS, min_segments=3)
 IMPLICIT_FPS = 30.0
 SECONDS = 20.0
 SEED = 2026  # the keys of every generated set
-BOOT_ROW = "texture, residual innovations (block bootstrap), constrained (sampled noise)"
+FIT_ROW = "texture, fitted innovation process, constrained (sampled noise)"
 
 
 def log(msg: str) -> None:
@@ -152,6 +151,13 @@ def main() -> None:
         else dict(
             acf=[float(r) for r in np.asarray(tex.innovations.acf)],
             persistence=float(tex.innovations.persistence),
+        ),
+        synthesis_residuals=None
+        if tex.residuals is None
+        else dict(
+            rows=int(np.shape(tex.residuals.rows)[0]),
+            segments_kept=int(np.shape(tex.residuals.labels)[0]),
+            segments=int(np.sum(np.asarray(tex.segments)[:, 2] >= 3)),
         ),
     )
     log(f"  {tex.n_textons} textons from {lab.size} segments in {t_learn:.1f} s")
@@ -281,7 +287,7 @@ def main() -> None:
         [s.motion for s in syn], boundaries=[s.boundaries() for s in syn]
     )
     log("texture: constrained synthesis, independent innovations (white; the same paths' keys)")
-    white = dataclasses.replace(tex, innovations=None)
+    white = dataclasses.replace(tex, innovations=None, residuals=None)
     syn_w = [mj.synthesize(k, white, n_frames=n_frames) for k in keys]
     rows["texture constrained (sampled noise), independent innovations"] = judge.judge(
         [s.motion for s in syn_w], boundaries=[s.boundaries() for s in syn_w]
@@ -297,10 +303,10 @@ def main() -> None:
     rows["texture constrained (sampled noise), cleaned"] = judge.judge(
         [c.motion for c in syn_c], boundaries=[s.boundaries() for s in syn]
     )
-    log("texture: constrained synthesis, innovations replayed from the training residuals")
-    boot = dataclasses.replace(tex, residuals=residual_bank(tex.textons, train_y, tex.segments))
-    syn_b = [mj.synthesize(k, boot, n_frames=n_frames) for k in keys]
-    rows[BOOT_ROW] = judge.judge(
+    log("texture: constrained synthesis, the fitted innovation process (the default before)")
+    fitted = dataclasses.replace(tex, residuals=None)
+    syn_b = [mj.synthesize(k, fitted, n_frames=n_frames) for k in keys]
+    rows[FIT_ROW] = judge.judge(
         [s.motion for s in syn_b], boundaries=[s.boundaries() for s in syn_b]
     )
     for tag, v in variants.items():
@@ -327,13 +333,11 @@ def main() -> None:
     sets = {"texture constrained (sampled noise)": [s.motion for s in syn]}
     sets["the same paths, independent innovations"] = [s.motion for s in syn_w]
     sets["the same syntheses, cleaned"] = [c.motion for c in syn_c]
-    sets["residual innovations (block bootstrap)"] = [s.motion for s in syn_b]
+    sets["the same paths, the fitted innovation process"] = [s.motion for s in syn_b]
     res["profile"] = profile(sets, train, held, FPS)
     log("sampling error of the headline row: the same synthesis with other seeds")
     res["seed_spread"] = seed_spread(judge, tex, n_frames, n_syn, SEEDS[: n_syn // 2 + 1])
-    res["seed_spread_residuals"] = seed_spread(
-        judge, boot, n_frames, n_syn, SEEDS[: n_syn // 2 + 1]
-    )
+    res["seed_spread_fitted"] = seed_spread(judge, fitted, n_frames, n_syn, SEEDS[: n_syn // 2 + 1])
     log("replay of the training clips through the texture: innovations or dynamics?")
     res["replay"] = replay(tex, train, FPS, SEED, judge.floor)
 

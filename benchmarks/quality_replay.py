@@ -49,7 +49,12 @@ def _labels(segments: np.ndarray, clip: int, n: int) -> np.ndarray:
 
 
 def _residuals(t: dict[str, np.ndarray], y: np.ndarray, lab: np.ndarray) -> np.ndarray:
-    """``(n, k)`` whitened residuals of every frame under its texton (rows 0, 1 zero)."""
+    """``(n, k)`` whitened residuals of every frame under its texton (rows 0, 1 zero).
+
+    Deliberately not :func:`mtex_jax.texture.segment_innovations`: the replay needs the
+    residuals of a whole clip, the two frames after each segment boundary included (there
+    the texton's recursion reaches back into the previous segment), which the package does
+    not compute; it is also an independent numpy re-derivation of the same formula."""
     v = np.zeros((len(y), t["A1"].shape[-1]))
     for i in np.unique(lab[2:]):
         j = np.flatnonzero(lab == i)

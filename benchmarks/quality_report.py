@@ -20,13 +20,20 @@ def _f(x: Any, nd: int = 3) -> str:
     return f"{x:.{nd}f}" if isinstance(x, float) else str(x)
 
 
-def _innovations_text(p: dict[str, Any] | None) -> str:
+def _innovations_text(p: dict[str, Any] | None, bank: dict[str, Any] | None) -> str:
     if p is None:
         return " Synthesis draws independent innovations."
     acf = ", ".join(f"{r:.2f}" for r in p["acf"])
-    return (
-        " Synthesis innovations (fitted on the training residuals): autocorrelation "
+    text = (
+        " The fitted innovation process: autocorrelation "
         f"{acf} at lags 1–{len(p['acf'])}, scale persistence {p['persistence']:.3f}."
+    )
+    if bank is None:
+        return " Synthesis draws from the fitted process." + text
+    return (
+        " Synthesis replays blocks of the training residuals (the default): "
+        f"{bank['rows']:,} rows of {bank['segments_kept']} of the {bank['segments']} "
+        "training segments (the others hold a capture glitch)." + text
     )
 
 
@@ -58,7 +65,8 @@ def write(res: dict[str, Any], out: Path, seed: int) -> None:
         f"{t['noise_driven_10k']['max_over_key_pose_range']:.2f}× the key poses' largest "
         "with independent innovations, "
         f"{t['noise_driven_10k'].get('max_over_key_pose_range_fitted', float('nan')):.2f}× "
-        "with the fitted innovation process." + _innovations_text(t.get("synthesis_innovations")),
+        "with the fitted innovation process."
+        + _innovations_text(t.get("synthesis_innovations"), t.get("synthesis_residuals")),
         "",
         "## Density and one-step prediction (held-out clips, texture's observation vectors)",
         "",
@@ -134,8 +142,8 @@ def write(res: dict[str, Any], out: Path, seed: int) -> None:
     ]
     if "seed_spread" in res:
         L += spread_lines(res["seed_spread"], seed, "the first texture row")
-    if "seed_spread_residuals" in res:
-        L += spread_lines(res["seed_spread_residuals"], seed, "the residual-innovations row")
+    if "seed_spread_fitted" in res:
+        L += spread_lines(res["seed_spread_fitted"], seed, "the fitted-process row")
     if "profile" in res:
         L += lines(res["profile"])
     if "replay" in res:

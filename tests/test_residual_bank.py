@@ -52,11 +52,11 @@ def learned():
         tmax=60,
         observation="full",
         max_iter=2,
-        innovations="residuals",
         n_textons=2,
         selection="none",
         min_segments=1,
     )
+    assert cfg.innovations == "residuals"  # the default
     return mj.learn(ys, cfg), ys
 
 
@@ -211,9 +211,17 @@ def test_bad_input_is_rejected(learned):
         residual_bank(tex.textons, ys, segs + np.asarray([0, 0, 0, 9]))
     with pytest.raises(ValueError, match="'fitted', 'white' or 'residuals'"):
         LearnConfig(innovations="bootstrap")
-    # a share of the clips (distributed learning) cannot hold every clip's residuals
-    with pytest.raises(ValueError, match="every clip in one process"):
+    # a share of the clips (distributed learning) needs every process's residuals
+    with pytest.raises(ValueError, match="needs gather"):
         with_innovations(tex, ys, offset=0, reduce=lambda s: s)
+    # a bank whose labels name no texton of the model
+    wrong = ResidualBank(bank.rows, bank.starts, bank.lengths, bank.labels + tex.n_textons)
+    with pytest.raises(ValueError, match=r"residuals\.labels outside"):
+        dataclasses.replace(tex, residuals=wrong)
+    with pytest.raises(ValueError, match="columns"):
+        dataclasses.replace(
+            tex, residuals=ResidualBank(bank.rows[:, :1], *[bank.starts, bank.lengths, bank.labels])
+        )
 
 
 def test_float32_smoke(learned):

@@ -319,9 +319,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument(
         "--innovations",
         choices=("fitted", "white", "residuals"),
-        default="fitted",
-        help="innovations of synthesis: a process fitted on the training residuals (default), "
-        "independent (white, the paper) or blocks of the residuals themselves (residuals)",
+        default="residuals",
+        help="innovations of synthesis: blocks of the training residuals themselves "
+        "(residuals, default), a process fitted on them (fitted) or independent (white, the "
+        "paper)",
     )
     s.add_argument(
         "--selection",

@@ -80,8 +80,10 @@ from ._paths import (
     shortest_path as shortest_path,
 )
 from ._residual_bank import (
+    PLAUSIBLE_TAIL as PLAUSIBLE_TAIL,
     ResidualBank as ResidualBank,
     draw_residuals as draw_residuals,
+    plausible_limit as plausible_limit,
     residual_bank as residual_bank,
 )
 from ._sample import (
@@ -127,6 +129,7 @@ from ._texton import (
 __all__ = [
     "MAX_SELF_REPEATS",
     "OBSERVATION_MODELS",
+    "PLAUSIBLE_TAIL",
     "BandedSolution",
     "BlockTridiagCholesky",
     "DynamicsStats",
@@ -173,6 +176,7 @@ __all__ = [
     "n_params",
     "path_cost",
     "path_of_length",
+    "plausible_limit",
     "process_from_statistics",
     "random_path",
     "refine_texton",

@@ -423,12 +423,6 @@ def learn_distributed(
             nor numeric arrays (on every process).
     """
     config = LearnConfig() if config is None else config
-    if isinstance(config, LearnConfig) and config.innovations == "residuals":
-        if jax.process_count() > 1:
-            raise ValueError(
-                "LearnConfig.innovations='residuals' keeps every clip's residuals in one "
-                "process; distributed learning supports 'fitted' and 'white'"
-            )
     root = jax.process_index() == 0
     run, fm, config, init = _prepare(data, config, verbose and root)
     n_frames = run.n_frames
@@ -467,9 +461,14 @@ def learn_distributed(
 
 def _with_innovations(model: MotionTexture, run: _DistRunner) -> MotionTexture:
     """The innovation process of the model from every process's residuals (summed
-    statistics), the same on every process."""
+    statistics; for a residual bank the residuals themselves, gathered), the same on every
+    process."""
     if jax.process_count() == 1:  # equals learn (residual banks included)
         return with_innovations(model, run.ys)
     return with_innovations(
-        model, run.ys, run.offset, reduce=lambda st: np.asarray(_allreduce(jnp.asarray(st)))
+        model,
+        run.ys,
+        run.offset,
+        reduce=lambda st: np.asarray(_allreduce(jnp.asarray(st))),
+        gather=_allgather_arrays,
     )

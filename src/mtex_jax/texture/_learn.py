@@ -32,7 +32,7 @@ from ._innovation_process import (
 )
 from ._labels import _capacity, _keep_textons
 from ._model import MotionTexture
-from ._residual_bank import residual_bank
+from ._residual_bank import PLAUSIBLE_TAIL, _bank
 from ._segment import _check_lengths
 from ._select import choose_state_dim, n_params
 
@@ -181,28 +181,44 @@ def with_innovations(
     ys: Sequence[np.ndarray],
     offset: int = 0,
     reduce: Callable[[np.ndarray], np.ndarray] | None = None,
+    gather: Callable[[dict[str, np.ndarray]], list[dict[str, np.ndarray]]] | None = None,
 ) -> MotionTexture:
     """``model`` with its :class:`InnovationProcess` fitted on the training residuals of its
     segmentation (``config.innovations`` ``"fitted"`` or ``"residuals"``; the latter also
     keeps the residuals themselves, a :class:`ResidualBank`); with ``"white"`` unchanged.
 
     ``ys`` are the clips numbered from ``offset`` in ``model.segments`` (a process's share
-    of a distributed learn); ``reduce`` sums the statistics over processes.
+    of a distributed learn); ``reduce`` sums the statistics over processes and ``gather``
+    collects every process's arrays, in process order (both collectives).
     """
     if model.config.innovations == "white":
         return model
-    rows = np.asarray(model.segments, dtype=np.int64)
-    rows = rows[(rows[:, 0] >= offset) & (rows[:, 0] < offset + len(ys))]
+    segs = np.asarray(model.segments, dtype=np.int64)
+    mine = (segs[:, 0] >= offset) & (segs[:, 0] < offset + len(ys))
+    rows = segs[mine]
     rows[:, 0] -= offset
-    stats = innovation_statistics(segment_innovations(model.textons, ys, rows))
+    res = segment_innovations(model.textons, ys, rows)
+    stats = innovation_statistics(res)
     if reduce is not None:
         stats = reduce(stats)
     process = process_from_statistics(stats)
     if model.config.innovations != "residuals":
         return dataclasses.replace(model, innovations=process)
-    if offset or reduce is not None:
-        raise ValueError("LearnConfig.innovations='residuals' needs every clip in one process")
-    bank = residual_bank(model.textons, ys, model.segments)
+    if gather is not None:  # every process's residuals, in the order of model.segments
+        k = int(np.shape(model.textons.C)[-1])
+        local = {
+            "u": np.concatenate(res) if res else np.zeros((0, k)),
+            "n": np.asarray([len(r) for r in res], np.int64),
+            "idx": np.flatnonzero(mine),
+        }
+        res = [np.zeros((0, k))] * len(segs)
+        for part in gather(local):
+            cuts = np.cumsum(part["n"])[:-1]
+            for i, r in zip(part["idx"], np.split(part["u"], cuts), strict=True):
+                res[int(i)] = r
+    elif offset or reduce is not None:
+        raise ValueError("LearnConfig.innovations='residuals' needs gather with offset/reduce")
+    bank = _bank(res, segs[:, 3], model.textons.dof, PLAUSIBLE_TAIL)
     return dataclasses.replace(model, innovations=process, residuals=bank)
 
 

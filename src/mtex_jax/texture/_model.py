@@ -11,6 +11,7 @@ from typing import Any
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, Float, Int
 
 from ..core import load_arrays_json, save_arrays_json
@@ -91,6 +92,16 @@ class MotionTexture(eqx.Module):
                     f"MotionTexture.log_durations must have shape {want}, "
                     f"got {np.shape(self.log_durations)}"
                 )
+        if self.residuals is not None:
+            k = int(np.shape(self.textons.C)[-1])
+            if np.shape(self.residuals.rows)[1] != k:
+                raise ValueError(
+                    f"MotionTexture.residuals.rows must have {k} columns (the state "
+                    f"dimension), got {np.shape(self.residuals.rows)}"
+                )
+            labels = self.residuals.labels
+            if not isinstance(labels, Tracer) and np.asarray(labels).max() >= n:
+                raise ValueError(f"MotionTexture.residuals.labels outside [0, {n})")
 
     @property
     def n_textons(self) -> int:

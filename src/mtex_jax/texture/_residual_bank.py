@@ -42,14 +42,19 @@ from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Int
 from scipy import stats
 
+from ._innovation_process import segment_innovations
 from ._texton import Texton
 
-__all__ = ["PLAUSIBLE_TAIL", "ResidualBank", "draw_residuals", "residual_bank"]
+__all__ = [
+    "PLAUSIBLE_TAIL",
+    "ResidualBank",
+    "draw_residuals",
+    "plausible_limit",
+    "residual_bank",
+]
 
 #: Tail probability beyond which a frame's residual is a capture glitch (module docstring).
 PLAUSIBLE_TAIL = 1e-6
-
-_FIELDS = ("mu", "C", "A1", "A2", "d", "B")
 
 
 class ResidualBank(eqx.Module):
@@ -85,13 +90,6 @@ class ResidualBank(eqx.Module):
                 )
             if np.asarray(self.labels).min() < 0:
                 raise ValueError("ResidualBank.labels must be non-negative")
-
-
-def _segment_residuals(t: dict[str, np.ndarray], y: np.ndarray, a: int, n: int, i: int):
-    """``(n − 2, k)`` whitened residuals of frames ``a + 2 … a + n − 1`` under texton ``i``."""
-    x = (y[a : a + n] - t["mu"][i]) @ t["C"][i]
-    e = x[2:] - x[1:-1] @ t["A1"][i].T - x[:-2] @ t["A2"][i].T - t["d"][i]
-    return np.linalg.solve(t["B"][i], e.T).T
 
 
 def plausible_limit(k: int, dof: float | None, tail: float = PLAUSIBLE_TAIL) -> float:
@@ -131,9 +129,7 @@ def residual_bank(
         raise ValueError(f"residual_bank: segments must have shape (s >= 1, 4), got {segs.shape}")
     if not 0.0 <= float(tail) < 1.0:
         raise ValueError(f"residual_bank: tail must lie in [0, 1), got {tail!r}")
-    t = {f: np.asarray(getattr(textons, f), dtype=np.float64) for f in _FIELDS}
-    n_t, D = t["mu"].shape
-    k = t["A1"].shape[-1]
+    n_t, D = np.shape(textons.mu)
     if segs[:, 3].min() < 0 or segs[:, 3].max() >= n_t:
         raise ValueError(f"residual_bank: segment labels outside [0, {n_t})")
     if segs[:, 0].min() < 0 or segs[:, 0].max() >= len(ys):
@@ -142,21 +138,31 @@ def residual_bank(
     for c, y in enumerate(clips):
         if y.ndim != 2 or y.shape[1] != D:
             raise ValueError(f"residual_bank: clip {c} must have shape (T, {D}), got {y.shape}")
-    segs = segs[segs[:, 2] >= 3]
-    if len(segs) == 0:
-        raise ValueError("residual_bank: no segment of 3 frames or more")
-    res = []
-    for c, a, n, i in segs:
+    for c, a, n, _ in segs:
         if a < 0 or a + n > len(clips[c]):
             raise ValueError(
                 f"residual_bank: segment ({c}, {a}, {n}) lies outside clip {c} "
                 f"({len(clips[c])} frames)"
             )
-        res.append(_segment_residuals(t, clips[c], int(a), int(n), int(i)))
+    return _bank(segment_innovations(textons, clips, segs), segs[:, 3], textons.dof, tail)
+
+
+def _bank(
+    residuals: Sequence[np.ndarray], labels: np.ndarray, dof: float | None, tail: float
+) -> ResidualBank:
+    """The bank of the segments' whitened residuals ``(n_s − 2, k)`` (empty for segments
+    shorter than 3 frames) and their texton ``labels``: the plausibility rule of the module
+    docstring, then the kept segments stacked."""
+    full = [i for i, r in enumerate(residuals) if len(r) > 0]
+    if not full:
+        raise ValueError("residual_bank: no segment of 3 frames or more")
+    res = [np.asarray(residuals[i], dtype=np.float64) for i in full]
+    labels = np.asarray(labels, dtype=np.int64)[full]
+    k = res[0].shape[1]
     worst = np.asarray([np.max(np.sum(r**2, axis=1)) / k for r in res])
-    keep = worst <= (np.inf if tail == 0 else plausible_limit(k, textons.dof, tail))
-    for i in np.unique(segs[:, 3]):  # every texton keeps at least its most plausible segment
-        own = segs[:, 3] == i
+    keep = worst <= (np.inf if tail == 0 else plausible_limit(k, dof, tail))
+    for i in np.unique(labels):  # every texton keeps at least its most plausible segment
+        own = labels == i
         if not keep[own].any():
             keep[np.flatnonzero(own)[np.argmin(worst[own])]] = True
     kept = [r for r, ok in zip(res, keep, strict=True) if ok]
@@ -165,7 +171,7 @@ def residual_bank(
         rows=jnp.asarray(np.concatenate(kept)),
         starts=jnp.asarray(np.cumsum(lengths) - lengths),
         lengths=jnp.asarray(lengths),
-        labels=jnp.asarray(segs[keep, 3]),
+        labels=jnp.asarray(labels[keep]),
     )
 
 
