@@ -144,6 +144,7 @@ def residual_bank(
                 f"residual_bank: segment ({c}, {a}, {n}) lies outside clip {c} "
                 f"({len(clips[c])} frames)"
             )
+    segs = segs[segs[:, 2] >= 3]  # shorter segments have no residual
     return _bank(segment_innovations(textons, clips, segs), segs[:, 3], textons.dof, tail)
 
 
