@@ -279,7 +279,7 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
                 None if "log_durations" not in arrays else jnp.asarray(arrays["log_durations"])
             ),
             innovations=_innovations_of(arrays),
-            residuals=_residuals_of(arrays, int(np.shape(arrays["M"])[0])),
+            residuals=_residuals_of(arrays),
             config=cfg,
             threshold=float(meta["threshold"]),
         )
@@ -300,22 +300,20 @@ def _innovations_of(arrays: dict[str, np.ndarray]) -> InnovationProcess | None:
     )
 
 
-def _residuals_of(arrays: dict[str, np.ndarray], n_textons: int) -> ResidualBank | None:
-    """The file's residual bank; ``None`` in files without one."""
+def _residuals_of(arrays: dict[str, np.ndarray]) -> ResidualBank | None:
+    """The file's residual bank; ``None`` in files without one (its labels are checked
+    against the textons by :class:`MotionTexture`)."""
     names = ("residuals.rows", "residuals.starts", "residuals.lengths", "residuals.labels")
     have = [k for k in names if k in arrays]
     if not have:
         return None
     if len(have) != len(names):
         raise ValueError(f"the arrays {', '.join(names)} come together")
-    labels = np.asarray(arrays["residuals.labels"])
-    if labels.size and labels.max() >= n_textons:
-        raise ValueError(f"residuals.labels outside [0, {n_textons})")
     return ResidualBank(
         rows=jnp.asarray(arrays["residuals.rows"]),
         starts=jnp.asarray(arrays["residuals.starts"]),
         lengths=jnp.asarray(arrays["residuals.lengths"]),
-        labels=jnp.asarray(labels),
+        labels=jnp.asarray(arrays["residuals.labels"]),
     )
 
 
