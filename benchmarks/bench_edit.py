@@ -233,7 +233,7 @@ def anatomy(tex, syn, cons, batch: int = 16, repeats: int = 3) -> dict[str, Any]
     Times (compiled, median of ``repeats``) the step's two big parts on the edit's own
     shapes: the per-frame Jacobians (coloured tangents, as the solver, and one tangent per
     channel) and the block Cholesky solve of the normal equations."""
-    from mtex_jax.edit._api import _check, _keep, _observations, segments_of
+    from mtex_jax.edit._api import check_constraints, kept_channels, observations_of, segments_of
     from mtex_jax.edit._banded import (
         _normal_solve,
         channel_colouring,
@@ -245,12 +245,12 @@ def anatomy(tex, syn, cons, batch: int = 16, repeats: int = 3) -> dict[str, Any]
     from mtex_jax.edit._solve import problem
 
     fm = tex.feature_map
-    Y, sp, sh = _observations(tex, syn, None, None)
-    cons = _check(cons, Y, fm)
+    Y, sp, sh = observations_of(tex, syn, None, None)
+    cons = check_constraints(cons, Y, fm)
     w = E.EditWeights()
     tx = WhitenedTextons.of(tex.textons, Y.dtype)
     seg = segments_of(tex, syn)
-    prob = problem(fm, tx, seg, Y, sp, sh, cons, w, True, _keep(cons, fm, None))
+    prob = problem(fm, tx, seg, Y, sp, sh, cons, w, True, kept_channels(cons, fm, None))
     free = jnp.asarray(root_free_channels(fm), Y.dtype)
     col = channel_colouring(fm, prob.keep)
     T, D = Y.shape

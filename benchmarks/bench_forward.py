@@ -1,4 +1,4 @@
-"""Benchmark: the semi-Markov forward algorithm (marginal likelihood, SPEC §10.1) against the
+"""Benchmark: the semi-Markov forward algorithm (marginal likelihood, design §10.1) against the
 Viterbi E-step on the same segment scores, at the paper's scale (issue 15).
 
 The problem is the E-step benchmark's (``bench_learn.make_problem``: ``N_t`` textons fitted on

@@ -1,4 +1,4 @@
-"""Benchmark: per-frame texton log-density terms at the paper's scale (issue 3, SPEC §3).
+"""Benchmark: per-frame texton log-density terms at the paper's scale (issue 3, design §3).
 
 ``frame_terms`` for T = 50,000 frames, N_t = 246 textons, D = 60, k = 15 in float64 (MT §7:
 49,800 frames, 246 textons, state dimension 12–15, observation dimension 60), against three
@@ -66,7 +66,7 @@ from frame_terms_reference import (
     random_textons,
 )
 from mtex_jax import internal
-from mtex_jax.internal import available_cores as _available_cores
+from mtex_jax.internal import available_cores as available_cores
 from mtex_jax.texture import Texton, frame_terms
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -248,7 +248,7 @@ def main() -> None:
         max_abs_diff_vs_numpy_same=max_abs_diff,
         blas_thread_options=thread_options,
         cpu_count=os.cpu_count(),
-        workers=_available_cores(),
+        workers=available_cores(),
         numpy_block=numpy_block,
         numpy_trial_s=numpy_trial,
         peak_rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,

@@ -1,4 +1,4 @@
-"""Benchmark of the implicit probabilistic motion model (issue 6; SPEC §7, §8).
+"""Benchmark of the implicit probabilistic motion model (issue 6; design §7, §8).
 
 Measures, on the 14 CMU salsa clips (``../shared/data/cmu-salsa``, or ``$MTEX_SHARED/data``):
 
@@ -48,19 +48,19 @@ from mtex_jax.internal import (
 # --------------------------------------------------------------------------- helpers
 @eqx.filter_jit
 def _tree(model, key, probes, beta):
-    idx = tree_sample_indices(model, key, probes, beta, "uniform")
+    idx = tree_sample_indices(model.database, key, probes, beta, "uniform")
     return idx, model.successors[idx]
 
 
 @eqx.filter_jit
 def _tree_weighted(model, key, probes, beta):
-    idx = tree_sample_indices(model, key, probes, beta, "weighted")
+    idx = tree_sample_indices(model.database, key, probes, beta, "weighted")
     return idx, model.successors[idx]
 
 
 @eqx.filter_jit
 def _exact(model, key, probes, beta):
-    idx = exact_sample_indices(model, key, probes, beta)
+    idx = exact_sample_indices(model.database, key, probes, beta)
     return idx, model.successors[idx]
 
 

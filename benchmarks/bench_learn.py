@@ -1,4 +1,4 @@
-"""Benchmark: segmentation E-step, ``learn`` and a dynamax baseline (issue 4; SPEC §3–4).
+"""Benchmark: segmentation E-step, ``learn`` and a dynamax baseline (issue 4; design §3–4).
 
 Three measurements, in one run, float64 throughout (``jax_enable_x64`` is set here, in the
 script; the library never sets it):

@@ -1,4 +1,4 @@
-"""Benchmark: motion quality on the fixed held-out split (issue 15; SPEC §10.4).
+"""Benchmark: motion quality on the fixed held-out split (issue 15; design §10.4).
 
 The split is fixed by ``../shared/data/README.md``: training 60_01–60_07, 60_09–60_11 (10
 clips), held out 60_12–60_15 (4 clips). Nothing here is tuned on the held-out clips: every

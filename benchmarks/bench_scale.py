@@ -94,7 +94,7 @@ def child_learn(n_frames: int, estep: bool) -> dict[str, Any]:
     import numpy as np
 
     import mtex_jax as mj
-    from mtex_jax.texture import _em, _learn
+    from mtex_jax.texture._learning import em as em_module, learn as _learn
 
     clips = take(n_frames)
     compile_s = {"s": 0.0}
@@ -118,11 +118,11 @@ def child_learn(n_frames: int, estep: bool) -> dict[str, Any]:
 
         return g
 
-    _learn._resolve_state_dim = timed("state_dim", _learn._resolve_state_dim)
-    _learn._greedy_segments = timed("init", _learn._greedy_segments)
-    _em._Runner.e_step = timed("e_step", _em._Runner.e_step)
-    _em._Runner.e_step_scored = timed("e_step", _em._Runner.e_step_scored)
-    _em._Runner.m_step = timed("m_step", _em._Runner.m_step)
+    _learn.resolve_state_dim = timed("state_dim", _learn.resolve_state_dim)
+    _learn.greedy_segments = timed("init", _learn.greedy_segments)
+    em_module.Runner.e_step = timed("e_step", em_module.Runner.e_step)
+    em_module.Runner.e_step_scored = timed("e_step", em_module.Runner.e_step_scored)
+    em_module.Runner.m_step = timed("m_step", em_module.Runner.m_step)
     iters: list[int] = []
     t0 = time.perf_counter()
     tex = mj.learn(clips, mj.LearnConfig(**CONFIG), callback=lambda i: iters.append(1))
@@ -178,10 +178,10 @@ def e_step_against_bound(tex: Any, clips: list[Any]) -> dict[str, Any]:
         runs.append(time.perf_counter() - t)
     warm = float(np.median(runs))
     # the learner's own E-step on the clips (packed in batches of 4, segment rows on the host)
-    from mtex_jax.texture import _em, _learn
+    from mtex_jax.texture._learning import em as em_module, learn as _learn
 
     ys = [np.asarray(fm.encode(m)) for m in clips]
-    run = _em._Runner(ys, _learn._resolve_state_dim(ys, tex.config, False))
+    run = em_module.Runner(ys, _learn.resolve_state_dim(ys, tex.config, False))
     M, pi = np.asarray(tex.M), np.asarray(tex.pi)
     ld = None if tex.log_durations is None else np.asarray(tex.log_durations)
     run.e_step(tex.textons, M, pi, ld)

@@ -1,10 +1,10 @@
-"""Benchmark: constrained synthesis of one texton (issue 5, SPEC §5, MT §5.4).
+"""Benchmark: constrained synthesis of one texton (issue 5, design §5, MT §5.4).
 
 Length ``l = 172``, ``k = 15``, ``D = 60``, float64; first two, last two frames held. Timed:
 
-* ``bridge (public call)``: :func:`mtex_jax.texture._synthesis.synthesize_texton` as a user calls it
-  (Python input checks + the jitted core), one texton; with both ends held and no edits it
-  uses the bridge recursion (:func:`mtex_jax.texture._synthesis._bridge`);
+* ``bridge (public call)``: :func:`mtex_jax.texture.synthesize_texton` as a user calls
+  it (Python input checks + the jitted core), one texton; with both ends held and no edits it
+  uses the bridge recursion (``solve_bridge`` of ``texture/_synthesis/bridge.py``);
 * ``bridge (jit)``: the whole call inside one ``jax.jit`` (key → sample), one texton;
 * ``bridge (vmap N, threefry keys)``: ``jax.jit(jax.vmap(...))`` over ``N`` default
   (threefry) keys, time per texton — the figure the issue's target refers to;
@@ -60,9 +60,9 @@ except ImportError:  # running from a source checkout without installation
 from mtex_jax.internal import (
     bridge_usable,
     constrained_equations,
-    constrained_normal_system as _normal_system,
-    draw_noise as _draw_noise,
-    observe_states as _observe,
+    constrained_normal_system as normal_system,
+    draw_noise as draw_noise,
+    observe_states as observe,
     solve_constrained,
 )
 from mtex_jax.texture import Texton, synthesize_texton
@@ -95,7 +95,7 @@ def dense_synthesis(tex: Texton, key: jax.Array, length: int, start, end) -> jax
     (with the key's equation noise ``v``, as :func:`synthesize_texton` draws it) assembled as
     a dense ``(l·k)²`` matrix and solved by a dense Cholesky factorisation."""
     k = tex.C.shape[-1]
-    s = _normal_system(tex, _draw_noise(tex, key, length), start, end, None, "whitened")
+    s = normal_system(tex, draw_noise(tex, key, length), start, end, None, "whitened")
     n = length
     J = jnp.zeros((n, k, n, k), tex.mu.dtype)
     i = jnp.arange(n)
@@ -112,9 +112,9 @@ def dense_synthesis(tex: Texton, key: jax.Array, length: int, start, end) -> jax
 
 def banded_synthesis(tex: Texton, key: jax.Array, length: int, start, end) -> jax.Array:
     """The same sample from the masked normal equations and the block-banded solver."""
-    w = _draw_noise(tex, key, length) @ tex.B.T
+    w = draw_noise(tex, key, length) @ tex.B.T
     eqs = constrained_equations(tex, length, w, start, end, None, "whitened")
-    return _observe(tex, *solve_constrained(tex, eqs, w))
+    return observe(tex, *solve_constrained(tex, eqs, w))
 
 
 def timed(fn, *args: Any) -> float:
@@ -160,7 +160,7 @@ def main() -> None:
     banded = jax.jit(lambda kk: banded_synthesis(tex, kk, L, start, end))
     banded_batch = jax.jit(jax.vmap(lambda kk: banded_synthesis(tex, kk, L, start, end)))
     dense = jax.jit(lambda kk: dense_synthesis(tex, kk, L, start, end))
-    noise = jax.jit(jax.vmap(lambda kk: _draw_noise(tex, kk, L)))
+    noise = jax.jit(jax.vmap(lambda kk: draw_noise(tex, kk, L)))
     noise_jax = jax.jit(jax.vmap(lambda kk: jax.random.normal(kk, (L - 2, k), jnp.float64)))
 
     compile_s = {}
@@ -332,7 +332,7 @@ warm-up; in each round every variant is timed once (single-texton rows: one unti
   (median {per_v * 1e3:.4f} ms); with rbg keys {rbg_v * 1e3:.4f} ms; drawing the noise alone
   takes {noise_v * 1e3:.4f} ms per texton of that
 - method: the bridge recursion (the free motion from the start frames plus the control that
-  brings it to the end frames, from a 2k × 2k system; `mtex_jax.texture._synthesis._bridge`); the
+  brings it to the end frames, from a 2k × 2k system; `solve_bridge`); the
   same least-squares solution as the banded solve of the masked normal equations:
   banded / bridge **{banded_med / single:.1f}×** (single), **{banded_v / per_v:.1f}×** (vmap)
 - the paper: 25–35 ms per texton

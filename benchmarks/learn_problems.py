@@ -95,7 +95,7 @@ def numpy_viterbi(
     tmin: int,
     tmax: int,
 ) -> tuple[float, list[tuple[int, int, int]]]:
-    """Straightforward semi-Markov Viterbi with explicit back-pointers (SPEC §4).
+    """Straightforward semi-Markov Viterbi with explicit back-pointers (design §4).
 
     ``V(e, i) = max_b score_i(b, e) + (b = 0 ? log π_i : H(b − 1, i))`` and
     ``H(e, i) = max_l V(e, l) + log M[l, i]``; segment scores from the prefix sums of a

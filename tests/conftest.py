@@ -11,6 +11,14 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 
+# The persistent compilation cache (under the user's cache folder, or $MTEX_JAX_CACHE): a
+# second run of the suite on the same machine skips most XLA compilations. Results do not
+# depend on it; MTEX_NO_CACHE=1 turns it off.
+if os.environ.get("MTEX_NO_CACHE", "") not in ("1", "true", "yes"):
+    from mtex_jax.core import enable_compilation_cache
+
+    enable_compilation_cache()
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
 CMU_DIR = SHARED / "data" / "cmu-salsa"

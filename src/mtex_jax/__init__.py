@@ -15,6 +15,7 @@ concern, each with its own API:
 
 from importlib.metadata import PackageNotFoundError, version
 
+from .core import enable_compilation_cache as enable_compilation_cache
 from .edit import synthesize as synthesize
 from .implicit import ImplicitModel as ImplicitModel, track as track
 from .io import (
@@ -59,6 +60,7 @@ __all__ = [
     "Skeleton",
     "__version__",
     "choreograph",
+    "enable_compilation_cache",
     "example_names",
     "forward_kinematics",
     "learn",

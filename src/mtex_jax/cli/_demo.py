@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ._evaluate import _write_json
+from ._evaluate import write_json
 from ._validators import positive, positive_int
 
 __all__ = ["register", "run_demo"]
@@ -235,7 +235,7 @@ def run_demo(
         "step_seconds": steps.times,
         "step_cpu_seconds": steps.cpu,
     }
-    _write_json(str(files["report"]), report)
+    write_json(str(files["report"]), report)
     say(f"quality of the new salsa against the {len(held)} held-out clips (real: held out):")
     for key, label in _SHOWN:
         a, b = rows["synthesised"].get(key), rows["real (held out)"].get(key)

@@ -1,4 +1,4 @@
-"""``mtex evaluate``: the quality report of a motion texture on held-out clips (SPEC §10.4)."""
+"""``mtex evaluate``: the quality report of a motion texture on held-out clips (design §10.4)."""
 
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ def _fmt(x: Any) -> str:
     return f"{x:.3f}" if isinstance(x, float) else str(x)
 
 
-def _write_json(path: str, report: dict[str, Any]) -> None:
+def write_json(path: str, report: dict[str, Any]) -> None:
     text = json.dumps(report, indent=1, default=float)  # fails before the file is touched
     with atomic_write(path, "w", encoding="utf-8") as f:
         f.write(text)
@@ -49,7 +49,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from ..metrics import MotionJudge, density_report
     from ..texture import synthesize
-    from ._texture_cmds import _load_model
+    from ._texture_cmds import load_model
 
     if args.output is not None and not args.output.lower().endswith(".json"):
         raise ValueError(f"-o/--output must be a .json file, got {args.output!r}")
@@ -62,9 +62,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.seconds > MAX_SYNTH_SECONDS:
         raise ValueError(f"--seconds {args.seconds:g} exceeds the limit of {MAX_SYNTH_SECONDS:g}")
     t0 = time.perf_counter()
-    tex = _load_model(args.model)
+    tex = load_model(args.model)
     fm = tex.feature_map
-    assert fm is not None  # checked by _load_model
+    assert fm is not None  # checked by load_model
     tmin = tex.config.tmin
     test = _read_clips(args.test, fm.fps, tmin, "--test")
     train = _read_clips(args.train, fm.fps, tmin, "--train") if args.train else None
@@ -120,7 +120,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if train is None:
         print("  (no --train clips: no realism floor, contacts and novelty from the test clips)")
     if args.output is not None:
-        _write_json(args.output, report)
+        write_json(args.output, report)
         print(f"\nreport: {args.output}")
     plot = args.plot
     if plot is None and args.output is not None:

@@ -1,6 +1,6 @@
 """``mtex implicit-synth`` and ``mtex track``: the implicit motion model on the command line.
 
-:func:`register` adds both sub-commands to the main parser (``mtex_jax._cli``). Bad input raises
+:func:`register` adds both sub-commands to the main parser (:mod:`mtex_jax.cli`). Bad input raises
 ``ValueError`` with a one-line message; the main CLI prints it and exits with status 2.
 """
 

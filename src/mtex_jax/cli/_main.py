@@ -102,6 +102,14 @@ def _run(argv: Sequence[str] | None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    # ... and keeps compiled programs between runs, unless MTEX_NO_CACHE=1
+    if os.environ.get("MTEX_NO_CACHE", "") not in ("1", "true", "yes"):
+        from ..core import enable_compilation_cache
+
+        try:
+            enable_compilation_cache()
+        except (OSError, ValueError):
+            pass  # an unwritable cache folder: compile as usual
     if not getattr(args, "func", None):
         _parser().print_help()
         return 2

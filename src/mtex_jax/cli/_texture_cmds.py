@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import MAX_GENERATED_FRAMES
+from ..texture import OBSERVATION_MODELS
 from ._validators import SOURCE_HELP, frames_of_seconds, read_source
 
 __all__ = ["register"]
@@ -119,7 +120,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_model(path: str):
+def load_model(path: str):
     from ..texture import load_texture
 
     tex = load_texture(path)
@@ -162,8 +163,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     from ..texture import synthesize
 
     _check_outputs(args.output, args.gif)
-    tex = _load_model(args.model)
-    assert tex.feature_map is not None  # checked by _load_model
+    tex = load_model(args.model)
+    assert tex.feature_map is not None  # checked by load_model
     fps = tex.feature_map.fps
     n = args.frames if args.frames is not None else round(10.0 * fps)
     if n < 4:
@@ -239,7 +240,7 @@ def _cmd_choreograph(args: argparse.Namespace) -> int:
     from ..texture import choreograph
 
     _check_outputs(args.output, args.gif)
-    tex = _load_model(args.model)
+    tex = load_model(args.model)
     start, pos, heading = _clip_frame(args.start, tex)
     end, _, _ = _clip_frame(args.end, tex)
     t0 = time.perf_counter()
@@ -298,7 +299,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument(
         "--observation",
-        choices=("residual", "full", "paper"),
+        choices=tuple(OBSERVATION_MODELS),
         default="residual",
         help="observation model of the textons (default residual; paper = MT-11)",
     )

@@ -4,7 +4,8 @@
   (:func:`save_arrays_json`, :func:`load_arrays_json`; re-exported by :mod:`mtex_jax.io`);
 - atomic file writes (:func:`atomic_write`): every file the package writes goes through it;
 - the resource limits of readers, model files and generators (constants of
-  ``core/_limits.py``, re-exported here) and the PRNG key check of public entry points.
+  ``core/_limits.py``, re-exported here) and the PRNG key check of public entry points;
+- JAX's persistent compilation cache, opt-in (:func:`enable_compilation_cache`).
 """
 
 from ._arrays import (
@@ -12,6 +13,10 @@ from ._arrays import (
     save_arrays_json as save_arrays_json,
 )
 from ._atomic import atomic_write as atomic_write
+from ._cache import (
+    default_cache_dir as default_cache_dir,
+    enable_compilation_cache as enable_compilation_cache,
+)
 from ._keys import check_key as check_key
 from ._limits import (
     MAX_ABS_VALUE as MAX_ABS_VALUE,
@@ -45,6 +50,8 @@ __all__ = [
     "check_frame_time",
     "check_json_depth",
     "check_key",
+    "default_cache_dir",
+    "enable_compilation_cache",
     "load_arrays_json",
     "save_arrays_json",
 ]

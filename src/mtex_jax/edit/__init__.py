@@ -1,5 +1,5 @@
 """Motion editing as optimisation through the differentiable decode and forward kinematics
-(SPEC §6): pose edits ("the right hand here at frame m, the texton's dynamics otherwise"),
+(design §6): pose edits ("the right hand here at frame m, the texton's dynamics otherwise"),
 foot contacts and the floor, and cleaning of synthesised motion. Two solvers of the same
 least squares: Gauss–Newton with the banded normal equations (the default; root trajectory held
 for edits, a smooth root offset for cleaning; ``vmap``-batched by :func:`edit_many`) and

@@ -72,7 +72,7 @@ def _solver(solver: str, cons: Constraints) -> str:
     return ("lm" if has_vel else "gn") if solver == "auto" else solver
 
 
-def _feature_map(texture: Any) -> FeatureMap:
+def feature_map_of(texture: Any) -> FeatureMap:
     if not isinstance(texture, MotionTexture):
         raise TypeError(f"texture must be a MotionTexture, got {type(texture).__name__}")
     if texture.feature_map is None:
@@ -92,10 +92,10 @@ def segments_of(texture: MotionTexture, motion: Motion | Synthesis | Any) -> Fra
     return frame_segments(np.array([r[1] for r in rows]), np.array([r[2] for r in rows]))
 
 
-def _observations(
+def observations_of(
     texture: MotionTexture, motion: Any, start_position: Any, start_heading: Any
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    fm = _feature_map(texture)
+    fm = feature_map_of(texture)
     if isinstance(motion, Synthesis):
         if motion.motion is not None and start_position is None and start_heading is None:
             sp, sh = fm.start_of(motion.motion)
@@ -119,7 +119,7 @@ def _observations(
     return Y, sp, sh
 
 
-def _check(cons: Any, Y: jax.Array, fm: FeatureMap) -> Constraints:
+def check_constraints(cons: Any, Y: jax.Array, fm: FeatureMap) -> Constraints:
     if not isinstance(cons, Constraints):
         raise TypeError(f"constraints must be made by make_constraints, got {type(cons).__name__}")
     T, D = Y.shape
@@ -137,7 +137,9 @@ def _check(cons: Any, Y: jax.Array, fm: FeatureMap) -> Constraints:
     )
 
 
-def _keep(cons: Constraints, fm: FeatureMap, floor_joints: Sequence[int] | None) -> tuple[int, ...]:
+def kept_channels(
+    cons: Constraints, fm: FeatureMap, floor_joints: Sequence[int] | None
+) -> tuple[int, ...]:
     """Joints whose positions the solve computes: constrained joints, feet, floor joints
     (default: every joint with a moving rotation channel)."""
     js = {int(j) for j in np.asarray(cons.joints).reshape(-1)}
@@ -204,9 +206,9 @@ def edit(
     Returns:
         :class:`EditResult` (check ``converged`` and ``met``; ``report()`` says it in words).
     """
-    fm = _feature_map(texture)
-    Y, sp, sh = _observations(texture, motion, start_position, start_heading)
-    cons = _check(constraints, Y, fm)
+    fm = feature_map_of(texture)
+    Y, sp, sh = observations_of(texture, motion, start_position, start_heading)
+    cons = check_constraints(constraints, Y, fm)
     seg = segments if segments is not None else segments_of(texture, motion)
     if seg.n_frames != Y.shape[0]:
         raise ValueError(f"segments cover {seg.n_frames} frames, the motion has {Y.shape[0]}")
@@ -217,7 +219,7 @@ def edit(
         if isinstance(v, bool) or not isinstance(v, int) or v < lo:
             raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
     tx = WhitenedTextons.of(texture.textons, Y.dtype)
-    keep = _keep(cons, fm, floor_joints)
+    keep = kept_channels(cons, fm, floor_joints)
     if _solver(solver, cons) == "gn":
         if not relative:
             raise ValueError("relative=False needs solver='lm'")
@@ -288,13 +290,13 @@ def edit_many(
     Returns:
         :class:`EditResult` with a leading batch axis on every field (on the default device).
     """
-    fm = _feature_map(texture)
+    fm = feature_map_of(texture)
     if len(motions) == 0 or len(motions) != len(constraints):
         raise ValueError("edit_many: give one constraints object per motion (at least one)")
-    obs = [_observations(texture, m, None, None) for m in motions]
+    obs = [observations_of(texture, m, None, None) for m in motions]
     if len({o[0].shape for o in obs}) != 1:
         raise ValueError("edit_many: every motion must have the same (T, D)")
-    cons = [_check(c, o[0], fm) for c, o in zip(constraints, obs, strict=True)]
+    cons = [check_constraints(c, o[0], fm) for c, o in zip(constraints, obs, strict=True)]
     if len({c.feet for c in cons}) != 1:
         raise ValueError("edit_many: every motion's constraints must plant the same feet")
     segs = list(segments) if segments is not None else [segments_of(texture, m) for m in motions]
@@ -305,7 +307,7 @@ def edit_many(
         raise ValueError("edit_many: the constraints differ in shape (use pad_to)") from None
     Y = jnp.stack([o[0] for o in obs])
     tx = WhitenedTextons.of(texture.textons, Y.dtype)
-    keep = tuple(sorted(set().union(*(_keep(c, fm, floor_joints) for c in cons))))
+    keep = tuple(sorted(set().union(*(kept_channels(c, fm, floor_joints) for c in cons))))
     w = EditWeights() if weights is None else weights
     which = _solver(solver, C)
     kw: dict[str, Any] = dict(keep=keep, rounds=rounds, max_steps=max_steps)
@@ -349,12 +351,14 @@ def edit_residuals(
         velocity, plant slide, plant height, floor) of the whitened variables ``u (T, D)``;
         ``u0`` is zero (the start of the solve); ``to_Y(u)`` the observation vectors.
     """
-    fm = _feature_map(texture)
-    Y, sp, sh = _observations(texture, motion, start_position, start_heading)
-    cons = _check(constraints, Y, fm)
+    fm = feature_map_of(texture)
+    Y, sp, sh = observations_of(texture, motion, start_position, start_heading)
+    cons = check_constraints(constraints, Y, fm)
     seg = segments if segments is not None else segments_of(texture, motion)
     w = EditWeights() if weights is None else weights
     tx = WhitenedTextons.of(texture.textons, Y.dtype)
-    prob = problem(fm, tx, seg, Y, sp, sh, cons, w, bool(relative), _keep(cons, fm, floor_joints))
+    prob = problem(
+        fm, tx, seg, Y, sp, sh, cons, w, bool(relative), kept_channels(cons, fm, floor_joints)
+    )
     zero = jnp.zeros_like(cons.targets)
     return (lambda u: prob.residuals(u, zero)), jnp.zeros_like(Y), prob.edited

@@ -25,7 +25,14 @@ from ..core import load_arrays_json, save_arrays_json
 from ..metrics import ContactModel, PenetrationResult, SkatingResult
 from ..motion import Motion, Skeleton
 from ..texture import MotionTexture, Synthesis
-from ._api import _check, _feature_map, _keep, _observations, edit, segments_of
+from ._api import (
+    check_constraints,
+    edit,
+    feature_map_of,
+    kept_channels,
+    observations_of,
+    segments_of,
+)
 from ._banded import PointTargets
 from ._constraints import EditWeights, make_constraints
 from ._gn import solve_edit_gn_jit
@@ -278,7 +285,7 @@ def clean(
     Returns:
         :class:`CleanResult`.
     """
-    fm = _feature_map(texture)
+    fm = feature_map_of(texture)
     if not isinstance(contacts, ContactModel):
         raise TypeError(f"contacts must be a ContactModel, got {type(contacts).__name__}")
     if not contacts.skeleton.same_structure(fm.skeleton):
@@ -301,7 +308,7 @@ def clean(
         raise TypeError(f"motion must be a Synthesis or a Motion, got {type(motion).__name__}")
     if raw.n_frames < 3:
         raise ValueError(f"motion: at least 3 frames are needed, got {raw.n_frames}")
-    Y, sp, sh = _observations(texture, motion, None, None)
+    Y, sp, sh = observations_of(texture, motion, None, None)
     gap = round(0.1 * float(fm.fps)) if max_gap is None else max_gap
     labels, plants = contact_plants(contacts, raw, min_steps=min_steps, rule=rule, max_gap=gap)
     # swing feet stay off the ground: a frame of no planted step whose foot was above its
@@ -321,7 +328,7 @@ def clean(
         feet=contacts.feet,
         lift=lift,
     )
-    cons = _check(cons, Y, fm)
+    cons = check_constraints(cons, Y, fm)
     seg = segments_of(texture, motion)
     w = clean_weights(solver) if weights is None else weights
     if solver == "lm":
@@ -341,7 +348,7 @@ def clean(
             solver="lm",
         )
     else:
-        keep = _keep(cons, fm, None)
+        keep = kept_channels(cons, fm, None)
         P0 = np.asarray(fm.joint_positions(Y, sp, sh))
         tgt, swing = swing_guidance(contacts, P0, labels)
         _, order = sub_skeleton(fm.skeleton, keep)  # the solve's kept joints, in order

@@ -33,7 +33,7 @@ from ._banded import (
 )
 from ._constraints import Constraints, EditWeights
 from ._prior import FrameSegments, WhitenedTextons, prior_hessian, smoothness_hessian
-from ._solve import EditResult, _finish_banded, _run_means, problem
+from ._solve import EditResult, finish_banded, problem, run_means
 
 __all__ = ["join_points", "solve_edit_gn"]
 
@@ -81,7 +81,7 @@ def constraint_points(
             [jnp.zeros((1, F), bool), pl]
         )  # (T, F) frames touched by a planted step
         Pf = P0[:, fslot]  # (T, F, 3)
-        anchor = jnp.stack([_run_means(Pf[..., c], on) for c in range(3)], axis=-1)
+        anchor = jnp.stack([run_means(Pf[..., c], on) for c in range(3)], axis=-1)
         ph = jnp.concatenate([plant_h, plant_h[-1:]])
         ph = jnp.where(jnp.concatenate([pl, jnp.zeros((1, F), bool)]), ph, jnp.roll(ph, 1, 0))
         tgt = anchor.at[..., up].set(ph)
@@ -178,7 +178,7 @@ def solve_edit_gn(
     if roots is not None:
         Y, sp = apply_shift(fm, Y, sp, prob.sh, z[:, list(roots[0])])
     prob = eqx.tree_at(lambda p: p.sp, prob, sp)
-    return _finish_banded(prob, Y, z, sol.converged, sol.steps, sol.cost)
+    return finish_banded(prob, Y, z, sol.converged, sol.steps, sol.cost)
 
 
 def root_channels(fm: FeatureMap) -> tuple[tuple[int, int], tuple[int, int]] | None:

@@ -1,7 +1,7 @@
 """The texture prior of an edit: texton dynamics residuals over a motion's segments.
 
 A motion ``Y (T, D)`` with a segmentation (texton ``ℓ_t`` of every frame, position ``s_t`` of
-the frame inside its segment) has the negative log-likelihood (SPEC §3, up to constants)
+the frame inside its segment) has the negative log-likelihood (design §3, up to constants)
 
 .. code-block:: text
 

@@ -133,7 +133,7 @@ class EditResult(eqx.Module):
         return "\n".join(lines)
 
 
-def _run_means(values: Array, plant: Array) -> Array:
+def run_means(values: Array, plant: Array) -> Array:
     """Per column, the mean of ``values`` over each run of consecutive ``plant`` rows."""
 
     def one(v: Array, p: Array) -> Array:
@@ -278,7 +278,7 @@ def problem(fm, tx, seg, Y0, sp, sh, cons, w, relative: bool, keep) -> _Problem:
     prob = _Problem(fm, tx, seg, wh, Y0, r0, sp, sh, cons, zero, zero, w, sub, keep)
     P0, root0 = prob.kinematics(Y0)
     h_orig = P0[:-1, list(cons.feet), fm.skeleton.up_axis]
-    mean_h = _run_means(h_orig, cons.plant)
+    mean_h = run_means(h_orig, cons.plant)
     plant_h = jnp.where(jnp.isnan(cons.plant_height), mean_h, cons.plant_height).astype(dtype)
     return eqx.tree_at(lambda p: (p.plant_h, p.root0), prob, (plant_h, root0))
 
@@ -355,10 +355,10 @@ def solve_edit(
     shift0 = jnp.zeros_like(cons.targets)
     init = (z0, shift0, jnp.asarray(False), jnp.asarray(0, jnp.int32))
     (z, shift, ok, steps), _ = jax.lax.scan(one_round, init, None, length=rounds)
-    return _finish(prob, z, shift, ok, steps, jnp.asarray(False))
+    return finish(prob, z, shift, ok, steps, jnp.asarray(False))
 
 
-def _finish(prob: _Problem, z, shift, ok, steps, used_bfgs) -> EditResult:
+def finish(prob: _Problem, z, shift, ok, steps, used_bfgs) -> EditResult:
     """Undo the last multiplier update (it belongs to a round not run) and measure."""
     c = prob.cons
     P = prob.positions(prob.edited(z))
@@ -381,7 +381,7 @@ def _finish(prob: _Problem, z, shift, ok, steps, used_bfgs) -> EditResult:
     )
 
 
-def _finish_banded(
+def finish_banded(
     prob: _Problem, Y: Array, z: Array, ok: Array, steps: Array, cost: Array
 ) -> EditResult:
     """Measure a banded Gauss–Newton solution ``Y`` (``z``: the solver's variables; the start
@@ -434,4 +434,4 @@ def bfgs_polish(
     sol = optx.minimise(f, solver, z0, max_steps=max_steps, throw=False)
     ok = sol.result == optx.RESULTS.successful
     steps = previous.steps + sol.stats["num_steps"]
-    return _finish(prob, sol.value, shift, ok, steps, jnp.asarray(True))
+    return finish(prob, sol.value, shift, ok, steps, jnp.asarray(True))

@@ -7,6 +7,9 @@ from ._camera import (
     decode_frame as decode_frame,
     default_joints as default_joints,
 )
+from ._database import (
+    MotionDatabase as MotionDatabase,
+)
 from ._learn import (
     learn as learn,
 )
@@ -40,6 +43,7 @@ from ._windows import (
 __all__ = [
     "Camera",
     "ImplicitModel",
+    "MotionDatabase",
     "SynthesisConfig",
     "TrackResult",
     "TrackingProblem",

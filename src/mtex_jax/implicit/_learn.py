@@ -1,4 +1,4 @@
-"""Building the implicit model (IP §4, SPEC §7): the database of motion windows, their PCA and
+"""Building the implicit model (IP §4, design §7): the database of motion windows, their PCA and
 the sign tree, from training clips.
 """
 
@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..motion import FeatureMap, Motion, foot_joints
+from ._database import MotionDatabase
 from ._feet import foot_contact
 from ._hubness import neighbour_radius
 from ._model import ImplicitModel
@@ -42,7 +43,7 @@ def learn(
     min_explained: float | None = None,
     recent_weight: float = 32.0,
 ) -> ImplicitModel:
-    """Build the database and its sign tree from training clips (IP §4, SPEC §7).
+    """Build the database and its sign tree from training clips (IP §4, design §7).
 
     Args:
         motions: one clip or a list (same skeleton); windows never straddle two clips.
@@ -215,14 +216,11 @@ def learn(
     except ValueError:  # no leaf joint below the root: no feet to lock
         feet = ()
     contact = foot_contact(motions, feet, d)
-    return ImplicitModel(
-        feature_map=fm,
+    database = MotionDatabase(
         window=d,
         n_components=b,
         leaf_max=leaf_max,
-        explained_variance=explained,
         clip_sizes=tuple(sizes),
-        weighting=weighting,
         recent_weight=float(recent_weight),
         feet=feet,
         gamma=f(gamma),
@@ -241,4 +239,7 @@ def learn(
         acceleration_std=f(acc_std),
         neighbour_radius=f(neighbour_radius(windows, clip_index, frame_index, d)),
         foot_contact=f(contact),
+    )
+    return ImplicitModel(
+        feature_map=fm, database=database, explained_variance=explained, weighting=weighting
     )

@@ -1,4 +1,4 @@
-"""Implicit probabilistic motion model (Sidenbladh, Black & Sigal, ECCV 2002; SPEC §7).
+"""Implicit probabilistic motion model (Sidenbladh, Black & Sigal, ECCV 2002; design §7).
 
 The database *is* the model: every window of ``d`` consecutive pose vectors of the training
 clips, each with the pose that follows it. Sampling the successor of a new history means
@@ -10,7 +10,7 @@ Coordinates
 *Pose vector* ``ψ_t`` (``P = 2D`` numbers) of frame ``t`` of a clip:
 ``ψ_t = [y_t, y_t − y_{t−1}]`` where ``y_t`` is the clip's observation vector from the model's
 :class:`~mtex_jax.FeatureMap` (z-scored root displacement in the heading frame, yaw change,
-height and joint exponential maps, SPEC §1) and the second half is its frame difference
+height and joint exponential maps, design §1) and the second half is its frame difference
 (velocity). ``ψ`` is defined for frames ``1 … T−1`` of a clip (frame 0 has no predecessor).
 Pose vectors are kept in these *FeatureMap units* (``successors``, :meth:`pose_vectors`).
 
@@ -50,6 +50,15 @@ So β = 1 means "as wide as the database" for both; β → 0 concentrates both o
 The two kernels are not identical (the exact one is isotropic in ``Γ``-scaled window space, the
 tree's is measured in units of each principal component's spread), so at equal β the tree is
 broader than the exact sampler; ``benchmarks/results/implicit.md`` reports the measured ratio.
+
+Structure
+---------
+The arrays live in a :class:`MotionDatabase` (``_database``), which is all that the kernels
+take (tree search and samplers ``_tree``, synthesis ``_synthesis``, tracking ``_tracking``).
+:class:`ImplicitModel` holds it beside the :class:`~mtex_jax.FeatureMap`; its methods check
+their arguments and call the kernels, and its synthesis methods are the functions of
+``_synthesis_api``. Imports go one way: ``_model`` → ``_synthesis_api`` → ``_synthesis`` →
+``_tree`` → ``_database``.
 """
 
 from __future__ import annotations
@@ -63,17 +72,10 @@ from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from ..core import check_key
 from ..motion import FeatureMap, Motion
-from ._synthesis_api import SynthesisConfig, SynthLeafRule, synthesize, synthesize_poses
+from ._database import MotionDatabase
+from ._synthesis_api import synthesize, synthesize_poses
 from ._tree import _sample_exact_jit, _sample_tree_jit
-from ._windows import (
-    _MAX_BITS,
-    _check_beta,
-    _check_candidates,
-    _is_concrete,
-    _window_view,
-    pose_vectors,
-    time_weights,
-)
+from ._windows import _check_beta, _check_candidates, _is_concrete, _window_view, pose_vectors
 
 LeafRule = Literal["uniform", "weighted"]
 
@@ -82,136 +84,148 @@ LeafRule = Literal["uniform", "weighted"]
 class ImplicitModel(eqx.Module):
     """Database of motion windows with a PCA sign tree (IP §4; see the module docstring).
 
-    Build with :meth:`build`. Sample successors with :meth:`sample` (tree, IP Eq. 7–8) or
-    :meth:`sample_exact` (IP Eq. 3); generate motion with :meth:`synthesize` (IP §5); track
-    with :func:`mtex_jax._tracking.track` (IP §3, §6). Arrays are JAX arrays in the dtype of
-    the training data (as allowed by the JAX configuration).
+    Build with :func:`~mtex_jax.implicit.learn`. Sample successors with :meth:`sample` (tree,
+    IP Eq. 7–8) or :meth:`sample_exact` (IP Eq. 3); generate motion with :meth:`synthesize`
+    (IP §5); track with :func:`~mtex_jax.implicit.track` (IP §3, §6). Arrays are JAX arrays in
+    the dtype of the training data (as allowed by the JAX configuration).
+
+    The database's fields (``window``, ``n_components``, ``leaf_max``, ``clip_sizes``,
+    ``recent_weight``, ``feet``, ``gamma``, ``pose_std``, ``mean``, ``basis``, ``sigma``,
+    ``windows``, ``successors``, ``codes``, ``order``, ``sorted_codes``, ``sorted_coeffs``,
+    ``clip_index``, ``frame_index``, ``acceleration_std``, ``neighbour_radius``,
+    ``foot_contact``; see :class:`MotionDatabase`) are also read-only attributes of the model.
 
     Attributes:
         feature_map: the observation map ``motion ↔ y`` (fixes skeleton and frame rate).
-        window: ``d``, pose vectors per window (static).
-        n_components: ``b``, PCA components = tree depth (static).
-        leaf_max: largest number of examples in one leaf (static; sizes the weighted leaf).
+        database: the windows, their successors and the tree (:class:`MotionDatabase`), what
+            the kernels take.
         explained_variance: fraction of the windows' variance kept by the ``b`` components
             (static float).
-        clip_sizes: number of examples contributed by each training clip (static).
         weighting: how ``γ`` was chosen (static): ``"channel"`` (the paper: ``γ`` is each
             parameter's database standard deviation) or ``"body"`` (joint-reach weights,
             pose and velocity groups whitened; see :func:`~mtex_jax.implicit.learn`).
-        recent_weight: ``w``: the newest pose vector of a window is scaled by ``√(1 + w)``
-            in model coordinates (static; ``0``: the paper).
-        feet: foot joint indices (static; :func:`mtex_jax.motion.foot_joints`), ``()`` if the
-            skeleton has none.
-        gamma: ``(P,)`` scale of each pose parameter in model coordinates (``Γ = diag(γ²)``).
-        pose_std: ``(P,)`` database standard deviation of each pose parameter (the unit of
-            the synthesis and tracking noise).
-        mean: ``(W,)`` mean window ``Ψ̄`` in model coordinates.
-        basis: ``(W, b)`` principal directions ``Ũ`` (orthonormal columns).
-        sigma: ``(b,)`` standard deviation ``σ_l`` of each coefficient.
-        windows: ``(n, W)`` example windows in model coordinates (example order).
-        successors: ``(n, P)`` pose vector ``ψ_{i+1}`` following each window (FeatureMap
-            units).
-        codes: ``(n,)`` sign code of each example (int32).
-        order: ``(n,)`` example indices sorted by code (stable).
-        sorted_codes: ``(n,)`` ``codes[order]``, non-decreasing.
-        sorted_coeffs: ``(n, b)`` PCA coefficients in sorted order.
-        clip_index: ``(n,)`` training clip of each example.
-        frame_index: ``(n,)`` frame (of the possibly resampled clip) of the window's newest
-            pose ``ψ_i``; the successor is frame ``frame_index + 1``.
-        acceleration_std: ``(D,)`` innovation scale of a constant-velocity prior: database
-            standard deviation of ``y_{t+1} − 2y_t + y_{t−1}``, except for the channels that
-            already are velocities (root displacement and yaw change,
-            :func:`velocity_channels`), where it is that of ``y_{t+1} − y_t``.
-        neighbour_radius: ``(n,)`` mean squared distance ``r_i`` of each window to its 10
-            nearest database windows (not overlapping it), the local scale of the synthesis
-            kernel's hubness correction (:mod:`~mtex_jax.implicit._hubness`).
-        foot_contact: ``(n, F)`` contact weight of each foot in each example's successor
-            frame, for the synthesis foot lock (:mod:`~mtex_jax.implicit._feet`).
     """
 
     feature_map: FeatureMap
-    window: int = eqx.field(static=True)
-    n_components: int = eqx.field(static=True)
-    leaf_max: int = eqx.field(static=True)
+    database: MotionDatabase
     explained_variance: float = eqx.field(static=True)
-    clip_sizes: tuple[int, ...] = eqx.field(static=True)
     weighting: str = eqx.field(static=True)
-    recent_weight: float = eqx.field(static=True)
-    feet: tuple[int, ...] = eqx.field(static=True)
-    gamma: Float[Array, " P"]
-    pose_std: Float[Array, " P"]
-    mean: Float[Array, " W"]
-    basis: Float[Array, "W b"]
-    sigma: Float[Array, " b"]
-    windows: Float[Array, "n W"]
-    successors: Float[Array, "n P"]
-    codes: Int[Array, " n"]
-    order: Int[Array, " n"]
-    sorted_codes: Int[Array, " n"]
-    sorted_coeffs: Float[Array, "n b"]
-    clip_index: Int[Array, " n"]
-    frame_index: Int[Array, " n"]
-    acceleration_std: Float[Array, " D"]
-    neighbour_radius: Float[Array, " n"]
-    foot_contact: Float[Array, "n F"]
 
     def __check_init__(self) -> None:
-        d, b = self.window, self.n_components
-        p = 2 * self.feature_map.dim
-        w = d * p
-        n = np.shape(self.windows)[0] if np.ndim(self.windows) == 2 else -1
-        if d < 1:
-            raise ValueError(f"ImplicitModel.window must be ≥ 1, got {d}")
-        if not 0 <= self.recent_weight < np.inf:
-            raise ValueError(f"ImplicitModel.recent_weight must be ≥ 0, got {self.recent_weight}")
         if self.weighting not in ("body", "channel"):
             raise ValueError(
                 f"ImplicitModel.weighting must be 'body' or 'channel', got {self.weighting!r}"
             )
-        if not 1 <= b <= _MAX_BITS:
-            raise ValueError(f"ImplicitModel.n_components must be in 1..{_MAX_BITS}, got {b}")
-        if n < 1:
-            raise ValueError("ImplicitModel: empty database")
-        expected = {
-            "gamma": (p,),
-            "pose_std": (p,),
-            "mean": (w,),
-            "basis": (w, b),
-            "sigma": (b,),
-            "windows": (n, w),
-            "successors": (n, p),
-            "codes": (n,),
-            "order": (n,),
-            "sorted_codes": (n,),
-            "sorted_coeffs": (n, b),
-            "clip_index": (n,),
-            "frame_index": (n,),
-            "acceleration_std": (p // 2,),
-            "neighbour_radius": (n,),
-            "foot_contact": (n, len(self.feet)),
-        }
-        for name, shape in expected.items():
-            got = np.shape(getattr(self, name))
-            if got != shape:
-                raise ValueError(f"ImplicitModel.{name} must have shape {shape}, got {got}")
-        if sum(self.clip_sizes) != n:
-            raise ValueError("ImplicitModel.clip_sizes must add up to the number of examples")
+        if self.database.pose_dim != 2 * self.feature_map.dim:
+            raise ValueError(
+                f"ImplicitModel: the database's pose vectors have {self.database.pose_dim} "
+                f"numbers, the feature map's {2 * self.feature_map.dim}"
+            )
+
+    # ------------------------------------------------------------------ the database's fields
+    @property
+    def window(self) -> int:
+        return self.database.window
+
+    @property
+    def n_components(self) -> int:
+        return self.database.n_components
+
+    @property
+    def leaf_max(self) -> int:
+        return self.database.leaf_max
+
+    @property
+    def clip_sizes(self) -> tuple[int, ...]:
+        return self.database.clip_sizes
+
+    @property
+    def recent_weight(self) -> float:
+        return self.database.recent_weight
+
+    @property
+    def feet(self) -> tuple[int, ...]:
+        return self.database.feet
+
+    @property
+    def gamma(self) -> Float[Array, " P"]:
+        return self.database.gamma
+
+    @property
+    def pose_std(self) -> Float[Array, " P"]:
+        return self.database.pose_std
+
+    @property
+    def mean(self) -> Float[Array, " W"]:
+        return self.database.mean
+
+    @property
+    def basis(self) -> Float[Array, "W b"]:
+        return self.database.basis
+
+    @property
+    def sigma(self) -> Float[Array, " b"]:
+        return self.database.sigma
+
+    @property
+    def windows(self) -> Float[Array, "n W"]:
+        return self.database.windows
+
+    @property
+    def successors(self) -> Float[Array, "n P"]:
+        return self.database.successors
+
+    @property
+    def codes(self) -> Int[Array, " n"]:
+        return self.database.codes
+
+    @property
+    def order(self) -> Int[Array, " n"]:
+        return self.database.order
+
+    @property
+    def sorted_codes(self) -> Int[Array, " n"]:
+        return self.database.sorted_codes
+
+    @property
+    def sorted_coeffs(self) -> Float[Array, "n b"]:
+        return self.database.sorted_coeffs
+
+    @property
+    def clip_index(self) -> Int[Array, " n"]:
+        return self.database.clip_index
+
+    @property
+    def frame_index(self) -> Int[Array, " n"]:
+        return self.database.frame_index
+
+    @property
+    def acceleration_std(self) -> Float[Array, " D"]:
+        return self.database.acceleration_std
+
+    @property
+    def neighbour_radius(self) -> Float[Array, " n"]:
+        return self.database.neighbour_radius
+
+    @property
+    def foot_contact(self) -> Float[Array, "n F"]:
+        return self.database.foot_contact
 
     # ------------------------------------------------------------------ sizes
     @property
     def n_examples(self) -> int:
         """``n``, number of database windows."""
-        return int(np.shape(self.windows)[0])
+        return self.database.n_examples
 
     @property
     def pose_dim(self) -> int:
         """``P = 2D``, numbers per pose vector."""
-        return int(np.shape(self.gamma)[0])
+        return self.database.pose_dim
 
     @property
     def window_dim(self) -> int:
         """``W = d·P``, numbers per window (model coordinates)."""
-        return self.window * self.pose_dim
+        return self.database.window_dim
 
     @property
     def fps(self) -> float:
@@ -257,49 +271,27 @@ class ImplicitModel(eqx.Module):
                 f"allows ({motion.n_frames} frames, need at least {self.window + 1})"
             )
         psi = pose_vectors(self.feature_map, motion)
-        return self.scale_windows(_window_view(psi, self.window))
+        return self.database.scale_windows(_window_view(psi, self.window))
 
     def scale_windows(self, poses: Float[ArrayLike, "*batch d P"]) -> Float[Array, "*batch W"]:
-        """Model coordinates of windows of pose vectors: ``vec(ψ_k / γ · τ_k)`` with ``τ_k = 1``
-        except ``τ_d = √(1 + w)`` for the newest (``w = recent_weight``; pure JAX)."""
-        poses = jnp.asarray(poses)
-        if poses.shape[-2:] != (self.window, self.pose_dim):
-            raise ValueError(
-                f"scale_windows: expected (..., {self.window}, {self.pose_dim}), got {poses.shape}"
-            )
-        g = self.gamma.astype(poses.dtype)
-        tw = jnp.asarray(time_weights(self.window, self.recent_weight), poses.dtype)[:, None]
-        return (poses / g * tw).reshape(*poses.shape[:-2], self.window_dim)
+        """Model coordinates of windows of pose vectors (:meth:`MotionDatabase.scale_windows`)."""
+        return self.database.scale_windows(poses)
 
     def coefficients(self, probes: Float[ArrayLike, "*batch W"]) -> Float[Array, "*batch b"]:
-        """PCA coefficients ``c = Ũᵀ(Φ − Ψ̄)`` of probes in model coordinates."""
-        probes = jnp.asarray(probes)
-        return (probes - self.mean.astype(probes.dtype)) @ self.basis.astype(probes.dtype)
+        """PCA coefficients of probes (:meth:`MotionDatabase.coefficients`)."""
+        return self.database.coefficients(probes)
 
     def distance2(
         self, probes: Float[ArrayLike, "*batch W"], indices: Int[ArrayLike, "*batch"]
     ) -> Float[Array, "*batch"]:
-        """Squared Mahalanobis distance (IP Eq. 3) between probes and database examples."""
-        probes = jnp.asarray(probes)
-        diff = self.windows[jnp.asarray(indices)].astype(probes.dtype) - probes
-        return jnp.sum(diff * diff, axis=-1)
+        """Squared Mahalanobis distance (IP Eq. 3, :meth:`MotionDatabase.distance2`)."""
+        return self.database.distance2(probes, indices)
 
     def node_range(
         self, level: int, prefix: Int[ArrayLike, "*batch"]
     ) -> tuple[Int[Array, "*batch"], Int[Array, "*batch"]]:
-        """Sorted-order range ``[lo, hi)`` of the examples under a tree node.
-
-        A node at ``level`` (0 = root, ``b`` = leaf) is identified by the ``level``-bit code
-        prefix of its examples; its range is found by binary search of the smallest codes of
-        ``prefix`` and ``prefix + 1``.
-        """
-        if not 0 <= level <= self.n_components:
-            raise ValueError(f"node_range: level must be in 0..{self.n_components}, got {level}")
-        shift = self.n_components - level
-        prefix = jnp.asarray(prefix, jnp.int32)
-        lo = jnp.searchsorted(self.sorted_codes, jnp.left_shift(prefix, shift), side="left")
-        hi = jnp.searchsorted(self.sorted_codes, jnp.left_shift(prefix + 1, shift), side="left")
-        return lo.astype(jnp.int32), hi.astype(jnp.int32)
+        """Sorted-order range of a tree node's examples (:meth:`MotionDatabase.node_range`)."""
+        return self.database.node_range(level, prefix)
 
     # ------------------------------------------------------------------ sampling
     def _prepare(self, probes: Any, beta: Any, fn: str) -> tuple[Array, Array, bool]:
@@ -358,7 +350,7 @@ class ImplicitModel(eqx.Module):
         _check_candidates(candidates, "sample")
         check_key(key, "sample")
         probes, beta_a, single = self._prepare(probes, beta, "sample")
-        idx = _sample_tree_jit(self, key, probes, beta_a, leaf, int(candidates))
+        idx = _sample_tree_jit(self.database, key, probes, beta_a, leaf, int(candidates))
         succ = self.successors[idx]
         return (idx[0], succ[0]) if single else (idx, succ)
 
@@ -380,67 +372,12 @@ class ImplicitModel(eqx.Module):
         """
         check_key(key, "sample_exact")
         probes, beta_a, single = self._prepare(probes, beta, "sample_exact")
-        idx = _sample_exact_jit(self, key, probes, beta_a)
+        idx = _sample_exact_jit(self.database, key, probes, beta_a)
         succ = self.successors[idx]
         return (idx[0], succ[0]) if single else (idx, succ)
 
     # ------------------------------------------------------------------ synthesis
-    def synthesize(
-        self,
-        key: PRNGKeyArray,
-        start_window: Motion | Float[ArrayLike, "d P"],
-        n_frames: int,
-        beta: float | Float[ArrayLike, ""],
-        noise: float | Float[ArrayLike, ""] = 0.0,
-        *,
-        sampler: Literal["tree", "exact"] = "tree",
-        config: SynthesisConfig | None = None,
-        leaf: SynthLeafRule | None = None,
-        candidates: int | None = None,
-        start_position: Float[ArrayLike, " 3"] | None = None,
-        start_heading: float | None = None,
-    ) -> Motion:
-        """Generate motion (IP §5 and the extensions of :class:`SynthesisConfig`) as a
-        :class:`Motion`; see :func:`~mtex_jax.implicit.synthesize` for the arguments."""
-        return synthesize(
-            self,
-            key,
-            start_window,
-            n_frames,
-            beta,
-            noise,
-            sampler=sampler,
-            config=config,
-            leaf=leaf,
-            candidates=candidates,
-            start_position=start_position,
-            start_heading=start_heading,
-        )
-
-    def synthesize_poses(
-        self,
-        key: PRNGKeyArray,
-        start_window: Motion | Float[ArrayLike, "d P"],
-        n_frames: int,
-        beta: float | Float[ArrayLike, ""],
-        noise: float | Float[ArrayLike, ""] = 0.0,
-        *,
-        sampler: Literal["tree", "exact"] = "tree",
-        config: SynthesisConfig | None = None,
-        leaf: SynthLeafRule | None = None,
-        candidates: int | None = None,
-    ) -> tuple[Float[Array, "T D"], Int[Array, " n_frames"]]:
-        """Like :meth:`synthesize` but returns observation vectors ``(d + n_frames, D)`` (seed
-        then generated, FeatureMap units) and the database example of each generated frame."""
-        return synthesize_poses(
-            self,
-            key,
-            start_window,
-            n_frames,
-            beta,
-            noise,
-            sampler=sampler,
-            config=config,
-            leaf=leaf,
-            candidates=candidates,
-        )
+    # ``model.synthesize(key, ...)`` is ``synthesize(model, key, ...)``: one signature, one
+    # docstring (``_synthesis_api``), and the full signature for type checkers and ``help``.
+    synthesize = synthesize
+    synthesize_poses = synthesize_poses

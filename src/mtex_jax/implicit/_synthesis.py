@@ -40,7 +40,7 @@ After the scan, the output frames around each transition are low-passed (``seam_
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -49,13 +49,12 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
+from ..motion import FeatureMap
+from ._database import MotionDatabase
 from ._feet import lock_root, root_channels
 from ._seams import smooth_seams
 from ._tree import _descend
 from ._windows import velocity_channels
-
-if TYPE_CHECKING:
-    from ._model import ImplicitModel
 
 SynthLeafRule = Literal["uniform", "weighted", "exact"]
 _LEAVES = ("uniform", "weighted", "exact")
@@ -193,9 +192,9 @@ class SynthesisConfig(eqx.Module):
         )
 
 
-def _remaining(model: ImplicitModel) -> np.ndarray:
+def _remaining(db: MotionDatabase) -> np.ndarray:
     """Further examples after each example in its clip, ``(n,)`` (static, from clip sizes)."""
-    return np.concatenate([np.arange(s - 1, -1, -1) for s in model.clip_sizes]).astype(np.int32)
+    return np.concatenate([np.arange(s - 1, -1, -1) for s in db.clip_sizes]).astype(np.int32)
 
 
 def _pick(key: PRNGKeyArray, logw: Array, ok: Array, valid: Array) -> Array:
@@ -206,32 +205,32 @@ def _pick(key: PRNGKeyArray, logw: Array, ok: Array, valid: Array) -> Array:
 
 
 def _kernel(
-    model: ImplicitModel, cfg: SynthesisConfig, ex: Array, probe: Array, beta: Array
+    db: MotionDatabase, cfg: SynthesisConfig, ex: Array, probe: Array, beta: Array
 ) -> Array:
     """Log weight of the exact kernel of examples ``ex`` for ``probe``, hubness-corrected:
     ``−(‖Ψ_i − Φ‖² − h r_i) / (2β)``."""
-    diff = model.windows[ex].astype(probe.dtype) - probe
+    diff = db.windows[ex].astype(probe.dtype) - probe
     d2 = jnp.sum(diff * diff, axis=-1)
     if cfg.hubness > 0:
-        d2 = d2 - cfg.hubness * model.neighbour_radius[ex].astype(probe.dtype)
+        d2 = d2 - cfg.hubness * db.neighbour_radius[ex].astype(probe.dtype)
     return -0.5 * d2 / beta
 
 
 def _admissible(
-    model: ImplicitModel, cfg: SynthesisConfig, ex: Array, cur: Array, run: Array, rem: Array
+    db: MotionDatabase, cfg: SynthesisConfig, ex: Array, cur: Array, run: Array, rem: Array
 ) -> Array:
     """Which examples ``ex`` a search may return (look-ahead and run cap)."""
     ok = rem[ex] >= cfg.lookahead
     if cfg.max_run > 0:
-        same = model.clip_index[ex] == model.clip_index[jnp.maximum(cur, 0)]
-        near = jnp.abs(model.frame_index[ex] - model.frame_index[jnp.maximum(cur, 0)] - 1)
-        banned = (cur >= 0) & (run >= cfg.max_run) & same & (near <= model.window)
+        same = db.clip_index[ex] == db.clip_index[jnp.maximum(cur, 0)]
+        near = jnp.abs(db.frame_index[ex] - db.frame_index[jnp.maximum(cur, 0)] - 1)
+        banned = (cur >= 0) & (run >= cfg.max_run) & same & (near <= db.window)
         ok = ok & ~banned
     return ok
 
 
 def _search_tree(
-    model: ImplicitModel,
+    db: MotionDatabase,
     cfg: SynthesisConfig,
     key: PRNGKeyArray,
     probe: Float[Array, " W"],
@@ -241,33 +240,33 @@ def _search_tree(
     rem: Array,
 ) -> Int[Array, ""]:
     """Tree search (IP Eq. 7–8) with the configured leaf rule and admissibility mask."""
-    c = model.coefficients(probe)
-    scale = jnp.sqrt(beta) * model.sigma.astype(c.dtype)
-    n = model.n_examples
+    c = db.coefficients(probe)
+    scale = jnp.sqrt(beta) * db.sigma.astype(c.dtype)
+    n = db.n_examples
 
     def walk(k: PRNGKeyArray) -> tuple[Array, Array]:
         k_walk, k_leaf, k_block = jax.random.split(k, 3)
-        u = jax.random.uniform(k_walk, (model.n_components,), dtype=c.dtype)
-        lo, hi, _ = _descend(model.sorted_codes, c / scale, u)
-        width = model.leaf_max if cfg.leaf_cap == 0 else min(cfg.leaf_cap, model.leaf_max)
+        u = jax.random.uniform(k_walk, (db.n_components,), dtype=c.dtype)
+        lo, hi, _ = _descend(db.sorted_codes, c / scale, u)
+        width = db.leaf_max if cfg.leaf_cap == 0 else min(cfg.leaf_cap, db.leaf_max)
         j = jnp.arange(width, dtype=jnp.int32)
         size = hi - lo
-        if width < model.leaf_max:  # a random cyclic block of `width` members
+        if width < db.leaf_max:  # a random cyclic block of `width` members
             first = jax.random.randint(k_block, (), 0, jnp.maximum(size, 1))
             first = jnp.where(size > width, first, 0)
             pos = lo + (first + j) % jnp.maximum(size, 1)
         else:
             pos = lo + j
         valid = j < size
-        ex = model.order[jnp.minimum(pos, n - 1)]
+        ex = db.order[jnp.minimum(pos, n - 1)]
         if cfg.leaf == "uniform":
             logw = jnp.zeros(pos.shape, c.dtype)
         elif cfg.leaf == "weighted":
-            z = (model.sorted_coeffs[jnp.minimum(pos, n - 1)].astype(c.dtype) - c) / scale
+            z = (db.sorted_coeffs[jnp.minimum(pos, n - 1)].astype(c.dtype) - c) / scale
             logw = -0.5 * jnp.sum(z * z, axis=-1)
         else:
-            logw = _kernel(model, cfg, ex, probe, beta)
-        ok = valid & _admissible(model, cfg, ex, cur, run, rem)
+            logw = _kernel(db, cfg, ex, probe, beta)
+        ok = valid & _admissible(db, cfg, ex, cur, run, rem)
         j = _pick(k_leaf, logw, ok, valid)
         return ex[j], ok[j]
 
@@ -275,12 +274,12 @@ def _search_tree(
         return walk(key)[0]
     k_walks, k_pick = jax.random.split(key)
     idx, ok = jax.vmap(walk)(jax.random.split(k_walks, cfg.candidates))
-    logp = _kernel(model, cfg, idx, probe, beta)
+    logp = _kernel(db, cfg, idx, probe, beta)
     return idx[_pick(k_pick, logp, ok, jnp.ones_like(ok))]
 
 
 def _search_exact(
-    model: ImplicitModel,
+    db: MotionDatabase,
     cfg: SynthesisConfig,
     key: PRNGKeyArray,
     probe: Float[Array, " W"],
@@ -290,9 +289,9 @@ def _search_exact(
     rem: Array,
 ) -> Int[Array, ""]:
     """Exact sampler (IP Eq. 3) over all admissible examples, ``O(n·W)``."""
-    ex = jnp.arange(model.n_examples, dtype=jnp.int32)
-    logw = _kernel(model, cfg, ex, probe, beta)
-    ok = _admissible(model, cfg, ex, cur, run, rem)
+    ex = jnp.arange(db.n_examples, dtype=jnp.int32)
+    logw = _kernel(db, cfg, ex, probe, beta)
+    ok = _admissible(db, cfg, ex, cur, run, rem)
     return _pick(key, logw, ok, jnp.ones_like(ok)).astype(jnp.int32)
 
 
@@ -303,7 +302,8 @@ def fade_weight(age: Array, blend: int) -> Array:
 
 
 def synthesize_scan(
-    model: ImplicitModel,
+    db: MotionDatabase,
+    fm: FeatureMap,
     key: PRNGKeyArray,
     win0: Float[Array, "d P"],
     n_frames: int,
@@ -313,29 +313,29 @@ def synthesize_scan(
     cfg: SynthesisConfig,
 ) -> tuple[Float[Array, "n_frames D"], Int[Array, " n_frames"]]:
     """The generator of the module docstring as one ``lax.scan``: poses and examples."""
-    dim = model.feature_map.dim
+    dim = fm.dim
     dt = win0.dtype
-    std = model.pose_std.astype(dt)[:dim]
-    succ_y = model.successors[:, :dim].astype(dt)
-    succ_v = model.successors[:, dim:].astype(dt)
-    rem = jnp.asarray(_remaining(model))
+    std = db.pose_std.astype(dt)[:dim]
+    succ_y = db.successors[:, :dim].astype(dt)
+    succ_v = db.successors[:, dim:].astype(dt)
+    rem = jnp.asarray(_remaining(db))
     vel = np.zeros(dim, dtype=bool)
-    vel[np.asarray(velocity_channels(model.feature_map), dtype=np.int64)] = True
+    vel[np.asarray(velocity_channels(fm), dtype=np.int64)] = True
     vel_a = jnp.asarray(vel)
     search = _search_tree if sampler == "tree" else _search_exact
-    chans = root_channels(model.feature_map)
-    lock = cfg.foot_lock > 0 and len(model.feet) > 0 and chans is not None
-    contact = model.foot_contact.astype(dt)
+    chans = root_channels(fm)
+    lock = cfg.foot_lock > 0 and len(db.feet) > 0 and chans is not None
+    contact = db.foot_contact.astype(dt)
 
     def step(carry, k):
         win, cur, off, age, run, since, delta = carry
         k_s, k_n = jax.random.split(k)
         has_next = (cur >= 0) & (rem[jnp.maximum(cur, 0)] >= 1)
         do_search = (~has_next) | (since >= cfg.continuation)
-        probe = model.scale_windows(win)
+        probe = db.scale_windows(win)
         idx = lax.cond(
             do_search,
-            lambda: search(model, cfg, k_s, probe, beta, cur, run, rem).astype(jnp.int32),
+            lambda: search(db, cfg, k_s, probe, beta, cur, run, rem).astype(jnp.int32),
             lambda: (cur + 1).astype(jnp.int32),
         )
         cont = has_next & (idx == cur + 1)
@@ -363,7 +363,7 @@ def synthesize_scan(
             assert chans is not None
             ex_last = succ_y[idx] - succ_v[idx]
             pose, delta = lock_root(
-                model.feature_map, model.feet, chans, last, pose, ex_last, succ_y[idx],
+                fm, db.feet, chans, last, pose, ex_last, succ_y[idx],
                 contact[idx], delta, cfg.foot_lock, cfg.lock_smoothing,
             )  # fmt: skip
         pose = pose + noise * std * jax.random.normal(k_n, (dim,), dt)

@@ -1,23 +1,37 @@
 """The public synthesis entry points of the implicit model (IP §5): argument checks, the start
-window, and decoding to a :class:`Motion`; the generator itself is in ``_synthesis``."""
+window, and decoding to a :class:`Motion`; the generator itself is in ``_synthesis``.
+
+:meth:`ImplicitModel.synthesize` and :meth:`ImplicitModel.synthesize_poses` *are* these
+functions (``model.synthesize(key, ...)`` is ``synthesize(model, key, ...)``). They need only
+a model's :class:`FeatureMap` and :class:`MotionDatabase` (:class:`SynthesisModel`), so this
+module does not import ``_model``, which imports it.
+"""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal, Protocol
 
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from ..core import MAX_GENERATED_FRAMES, check_count, check_key
-from ..motion import Motion
+from ..motion import FeatureMap, Motion
+from ._database import MotionDatabase
 from ._synthesis import SynthesisConfig, SynthLeafRule, synthesize_jit
 from ._windows import _check_beta, _check_candidates, _is_concrete, pose_vectors
 
-if TYPE_CHECKING:
-    from ._model import ImplicitModel
+__all__ = ["SynthLeafRule", "SynthesisConfig", "SynthesisModel", "synthesize", "synthesize_poses"]
 
-__all__ = ["SynthLeafRule", "SynthesisConfig", "synthesize", "synthesize_poses"]
+
+class SynthesisModel(Protocol):
+    """What synthesis needs of a model: an :class:`~mtex_jax.implicit.ImplicitModel`."""
+
+    @property
+    def feature_map(self) -> FeatureMap: ...
+
+    @property
+    def database(self) -> MotionDatabase: ...
 
 
 def _replace(config: SynthesisConfig, **changes: Any) -> SynthesisConfig:
@@ -41,7 +55,7 @@ def _config(config: SynthesisConfig | None, leaf: Any, candidates: Any, fn: str)
 
 
 def synthesize_poses(
-    model: ImplicitModel,
+    model: SynthesisModel,
     key: PRNGKeyArray,
     start_window: Motion | Float[ArrayLike, "d P"],
     n_frames: int,
@@ -53,7 +67,7 @@ def synthesize_poses(
     leaf: SynthLeafRule | None = None,
     candidates: int | None = None,
 ) -> tuple[Float[Array, "T D"], Int[Array, " n_frames"]]:
-    """Generate observation vectors with the implicit model (see :func:`synthesize`).
+    """Like :func:`synthesize` but returns observation vectors instead of a :class:`Motion`.
 
     Returns:
         ``(d + n_frames, D)`` poses (seed then generated, FeatureMap units) and the database
@@ -73,27 +87,29 @@ def synthesize_poses(
         nz = np.asarray(noise)
         if nz.shape != () or not (np.isfinite(nz) and nz >= 0):
             raise ValueError(f"synthesize: noise must be a finite scalar ≥ 0, got {noise!r}")
+    fm, db = model.feature_map, model.database
     if isinstance(start_window, Motion):
-        model.feature_map._check_motion(start_window)
-        if start_window.n_frames < model.window + 1:
+        fm._check_motion(start_window)
+        if start_window.n_frames < db.window + 1:
             raise ValueError(
-                f"synthesize: the start clip needs at least {model.window + 1} frames, "
+                f"synthesize: the start clip needs at least {db.window + 1} frames, "
                 f"got {start_window.n_frames}"
             )
-        win = jnp.asarray(pose_vectors(model.feature_map, start_window[: model.window + 1]))
+        win = jnp.asarray(pose_vectors(fm, start_window[: db.window + 1]))
     else:
         win = jnp.asarray(start_window)
-        if win.shape != (model.window, model.pose_dim):
+        if win.shape != (db.window, db.pose_dim):
             raise ValueError(
-                f"synthesize: start_window must be a Motion or a ({model.window}, "
-                f"{model.pose_dim}) array of pose vectors, got shape {win.shape}"
+                f"synthesize: start_window must be a Motion or a ({db.window}, "
+                f"{db.pose_dim}) array of pose vectors, got shape {win.shape}"
             )
         if _is_concrete(win) and not bool(jnp.all(jnp.isfinite(win))):
             raise ValueError("synthesize: start_window contains NaN or inf")
-    dtype = model.windows.dtype
+    dtype = db.windows.dtype
     win = win.astype(dtype)
     gen, idx = synthesize_jit(
-        model,
+        db,
+        fm,
         key,
         win,
         int(n_frames),
@@ -102,12 +118,11 @@ def synthesize_poses(
         sampler,
         cfg,
     )
-    dim = model.feature_map.dim
-    return jnp.concatenate([win[:, :dim], gen], axis=0), idx
+    return jnp.concatenate([win[:, : fm.dim], gen], axis=0), idx
 
 
 def synthesize(
-    model: ImplicitModel,
+    model: SynthesisModel,
     key: PRNGKeyArray,
     start_window: Motion | Float[ArrayLike, "d P"],
     n_frames: int,

@@ -1,6 +1,6 @@
 """Monocular 3-D tracking with a particle filter (Sidenbladh, Black & Sigal, IP §3 and §6).
 
-Observation model (SPEC §7): the 3-D positions of ``K`` joints of a motion the database has not
+Observation model (design §7): the 3-D positions of ``K`` joints of a motion the database has not
 seen are projected through a pin-hole camera (:class:`Camera`) and perturbed with Gaussian pixel
 noise; depth is not observed. :func:`make_problem` builds such a problem, with its ground truth.
 
@@ -49,6 +49,7 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from ..core import MAX_GENERATED_FRAMES, MAX_PARTICLES, check_count, check_key
 from ..motion import (
+    FeatureMap,
     Motion,
     forward_kinematics,
     forward_kinematics_arrays,
@@ -56,6 +57,7 @@ from ..motion import (
     quat_twist,
 )
 from ._camera import Camera, decode_frame, default_joints
+from ._database import MotionDatabase
 from ._model import ImplicitModel
 from ._tree import tree_sample_indices
 from ._windows import velocity_channels
@@ -227,7 +229,8 @@ def _systematic(key: PRNGKeyArray, w: Float[Array, " N"]) -> Int[Array, " N"]:
 
 
 def _track_impl(
-    model: ImplicitModel,
+    db: MotionDatabase,
+    fm: FeatureMap,
     problem: TrackingProblem,
     key: PRNGKeyArray,
     n_particles: int,
@@ -239,12 +242,11 @@ def _track_impl(
     leaf: str,
     candidates: int,
 ) -> tuple[Array, Array, Array, Array]:
-    fm = model.feature_map
     dim = fm.dim
-    dt = model.windows.dtype
+    dt = db.windows.dtype
     jidx = np.asarray(problem.joints)
-    g = model.pose_std.astype(dt)[:dim]
-    acc = model.acceleration_std.astype(dt)
+    g = db.pose_std.astype(dt)[:dim]
+    acc = db.acceleration_std.astype(dt)
     n = n_particles
     # root displacement / yaw change already are velocities: constant velocity keeps them
     vel_mask = jnp.ones(dim, dt).at[np.asarray(velocity_channels(fm), dtype=np.int64)].set(0.0)
@@ -261,9 +263,9 @@ def _track_impl(
         last = win[:, -1, :dim]
         eps = jax.random.normal(k_noise, (n, dim), dt)
         if prior == "implicit":
-            probes = model.scale_windows(win)
-            idx = tree_sample_indices(model, k_prior, probes, beta, leaf, candidates)
-            pose = model.successors[idx, :dim].astype(dt) + noise * g * eps
+            probes = db.scale_windows(win)
+            idx = tree_sample_indices(db, k_prior, probes, beta, leaf, candidates)
+            pose = db.successors[idx, :dim].astype(dt) + noise * g * eps
         else:
             pose = last + vel_mask * win[:, -1, dim:] + cv_noise * acc * eps
         psi = jnp.concatenate([pose, pose - last], axis=-1)
@@ -349,7 +351,8 @@ def track(
         raise ValueError(f"track: likelihood_sigma must be positive, got {likelihood_sigma}")
     dt = model.windows.dtype
     mean_x, mean_psi, mean_root, ess = _track_jit(
-        model,
+        model.database,
+        model.feature_map,
         problem,
         key,
         int(n_particles),

@@ -1,9 +1,7 @@
-"""The PCA sign tree and its sampling kernels (IP §4-5, Eq. 7-8; SPEC §7): sign codes, the
-probabilistic tree descent, exact sampling over all windows, and the synthesis loop."""
+"""The PCA sign tree and its sampling kernels (IP §4, Eq. 3 and 7-8; design §7): sign codes, the
+probabilistic tree descent and exact sampling over all windows, on a :class:`MotionDatabase`."""
 
 from __future__ import annotations
-
-from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -13,8 +11,7 @@ from jax import lax
 from jax.scipy.special import log_ndtr, ndtr
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
-if TYPE_CHECKING:
-    from ._model import ImplicitModel
+from ._database import MotionDatabase
 
 
 # --------------------------------------------------------------------------- pure kernels
@@ -80,33 +77,33 @@ def _descend(
 
 
 def _tree_one(
-    model: ImplicitModel, key: PRNGKeyArray, c: Float[Array, " b"], beta: Array, leaf: str
+    db: MotionDatabase, key: PRNGKeyArray, c: Float[Array, " b"], beta: Array, leaf: str
 ) -> tuple[Int[Array, ""], Float[Array, ""]]:
     """One tree sample for coefficient vector ``c`` → (example index, log proposal prob.)."""
     k_walk, k_leaf = jax.random.split(key)
-    b = model.n_components
-    scale = jnp.sqrt(beta) * model.sigma.astype(c.dtype)
+    b = db.n_components
+    scale = jnp.sqrt(beta) * db.sigma.astype(c.dtype)
     u = jax.random.uniform(k_walk, (b,), dtype=c.dtype)
-    lo, hi, logq = _descend(model.sorted_codes, c / scale, u)
+    lo, hi, logq = _descend(db.sorted_codes, c / scale, u)
     if leaf == "uniform":
         v = jax.random.uniform(k_leaf, (), dtype=c.dtype)
         size = (hi - lo).astype(c.dtype)
         pos = jnp.minimum(lo + jnp.floor(v * size).astype(jnp.int32), hi - 1)
         logq = logq - jnp.log(size)
     else:
-        cand = lo + jnp.arange(model.leaf_max, dtype=jnp.int32)
+        cand = lo + jnp.arange(db.leaf_max, dtype=jnp.int32)
         valid = cand < hi
-        safe = jnp.minimum(cand, model.n_examples - 1)
-        zz = (model.sorted_coeffs[safe].astype(c.dtype) - c) / scale
+        safe = jnp.minimum(cand, db.n_examples - 1)
+        zz = (db.sorted_coeffs[safe].astype(c.dtype) - c) / scale
         logw = jnp.where(valid, -0.5 * jnp.sum(zz * zz, axis=-1), -jnp.inf)
         pick = jax.random.categorical(k_leaf, logw)
         pos = cand[pick]
         logq = logq + logw[pick] - jax.nn.logsumexp(logw)
-    return model.order[pos], logq
+    return db.order[pos], logq
 
 
 def tree_sample_indices(
-    model: ImplicitModel,
+    db: MotionDatabase,
     key: PRNGKeyArray,
     probes: Float[Array, "N W"],
     beta: Array,
@@ -119,25 +116,25 @@ def tree_sample_indices(
     with probability ``∝ p(i_k | Φ_t) / q(i_k)`` (exact kernel of IP Eq. 3 over the walk's
     proposal probability) — sampling-importance-resampling, ``O(K (b log n + W))``.
     """
-    c = model.coefficients(probes)
+    c = db.coefficients(probes)
     n = probes.shape[0]
-    one = lambda k, ci: _tree_one(model, k, ci, beta, leaf)
+    one = lambda k, ci: _tree_one(db, k, ci, beta, leaf)
     if candidates == 1:
         return jax.vmap(one)(jax.random.split(key, n), c)[0]
     k_walk, k_pick = jax.random.split(key)
     keys = jax.random.split(k_walk, (n, candidates))
     idx, logq = jax.vmap(jax.vmap(one, in_axes=(0, None)))(keys, c)  # (N, K)
-    diff = model.windows[idx].astype(probes.dtype) - probes[:, None, :]
+    diff = db.windows[idx].astype(probes.dtype) - probes[:, None, :]
     logp = -0.5 * jnp.sum(diff * diff, axis=-1) / beta
     pick = jax.random.categorical(k_pick, logp - logq, axis=-1)
     return jnp.take_along_axis(idx, pick[:, None], axis=1)[:, 0]
 
 
 def exact_sample_indices(
-    model: ImplicitModel, key: PRNGKeyArray, probes: Float[Array, "N W"], beta: Array
+    db: MotionDatabase, key: PRNGKeyArray, probes: Float[Array, "N W"], beta: Array
 ) -> Int[Array, " N"]:
     """Traceable core of :meth:`ImplicitModel.sample_exact`: ``O(n·W)`` per probe."""
-    w = model.windows.astype(probes.dtype)
+    w = db.windows.astype(probes.dtype)
     d2 = (
         jnp.sum(probes * probes, axis=-1, keepdims=True)
         + jnp.sum(w * w, axis=-1)[None, :]

@@ -1,4 +1,4 @@
-"""Pose vectors and motion windows of the implicit model (IP §3, SPEC §7), and the checks of its
+"""Pose vectors and motion windows of the implicit model (IP §3, design §7), and the checks of its
 inputs."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Motion quality, measured: held-out likelihood and prediction against baselines, realism of
 joint speed/acceleration/jerk distributions, foot contacts, skating and floor penetration,
-transitions, and novelty (SPEC §10.4).
+transitions, and novelty (design §10.4).
 """
 
 # --- likelihood baselines and prediction (baselines module) ---

@@ -1,4 +1,4 @@
-"""Baseline densities on observation vectors (SPEC §10.4): a single full-covariance AR(2),
+"""Baseline densities on observation vectors (design §10.4): a single full-covariance AR(2),
 constant velocity and hold-last-frame, each a Gaussian one-step predictor, fitted in closed
 form on training sequences.
 
@@ -145,7 +145,7 @@ def _chol_floor(S: np.ndarray, floor: float) -> np.ndarray:
     return np.linalg.cholesky(S)
 
 
-def _finish(
+def finish(
     Ys: list[Array], A1: np.ndarray, A2: np.ndarray, c: np.ndarray, kind: str, floor: float
 ) -> GaussianAR2:
     dtype = Ys[0].dtype
@@ -200,7 +200,7 @@ def fit_ar2(
     T = np.concatenate([y[2:] for y in Yn])
     reg = ridge * Z.shape[0] * np.diag(np.r_[np.ones(2 * D), 0.0])
     W = np.linalg.solve(Z.T @ Z + reg, Z.T @ T)  # (2D + 1, D)
-    return _finish(Ys, W[:D].T, W[D : 2 * D].T, W[2 * D], "ar2", floor)
+    return finish(Ys, W[:D].T, W[D : 2 * D].T, W[2 * D], "ar2", floor)
 
 
 def constant_velocity(Ys: Sequence[ArrayLike] | ArrayLike, *, floor: float = 1e-6) -> GaussianAR2:
@@ -208,7 +208,7 @@ def constant_velocity(Ys: Sequence[ArrayLike] | ArrayLike, *, floor: float = 1e-
     covariance fitted on ``Ys``."""
     Ys = _check_list(Ys)
     D = Ys[0].shape[1]
-    return _finish(Ys, 2.0 * np.eye(D), -np.eye(D), np.zeros(D), "constant_velocity", floor)
+    return finish(Ys, 2.0 * np.eye(D), -np.eye(D), np.zeros(D), "constant_velocity", floor)
 
 
 def hold_last(Ys: Sequence[ArrayLike] | ArrayLike, *, floor: float = 1e-6) -> GaussianAR2:
@@ -216,7 +216,7 @@ def hold_last(Ys: Sequence[ArrayLike] | ArrayLike, *, floor: float = 1e-6) -> Ga
     ``Ys``."""
     Ys = _check_list(Ys)
     D = Ys[0].shape[1]
-    return _finish(Ys, np.eye(D), np.zeros((D, D)), np.zeros(D), "hold_last", floor)
+    return finish(Ys, np.eye(D), np.zeros((D, D)), np.zeros(D), "hold_last", floor)
 
 
 def prediction_error(predicted: Float[ArrayLike, "n D"], actual: Float[ArrayLike, "n D"]) -> float:

@@ -6,7 +6,7 @@ positions at one frame rate ``f``: for a foot joint with position ``p_t``,
 
     h_t = p_t[up],    s_t = ‖(p_{t+1} − p_t)[h0, h1]‖ f    (m/s, one value per step t → t+1).
 
-**Thresholds** (per foot joint, from the training clips' own distributions, SPEC §10.4):
+**Thresholds** (per foot joint, from the training clips' own distributions, design §10.4):
 
 - height ``H`` = the *median* of the foot's height over all training frames. The height
   distribution is a sharp support mode (the ankle a few centimetres above the floor) with a

@@ -1,6 +1,6 @@
 """World joint positions of clips at one frame rate, and their finite-difference derivatives.
 
-Every motion metric (SPEC §10.4) starts here: the clips are checked (same skeleton, finite,
+Every motion metric (design §10.4) starts here: the clips are checked (same skeleton, finite,
 long enough), resampled to one common rate ``f`` and turned into world joint positions
 ``p_t ∈ R^{J×3}`` in metres by forward kinematics. The derivatives are forward differences,
 

@@ -24,7 +24,7 @@ indexes the concatenated training frames. Step ``t − 1 → t`` is *verbatim* w
 frame of ``t`` is the successor, in the same training clip, of the nearest frame of ``t − 1``.
 Reported: the share of verbatim steps and the longest run of consecutive verbatim steps, in
 seconds (``k`` steps = ``k / f`` s). :func:`copying_from_indices` does the same from the database
-indices a sampler actually chose and a successor array (SPEC §10.4 "Copying").
+indices a sampler actually chose and a successor array (design §10.4 "Copying").
 """
 
 from __future__ import annotations
@@ -334,7 +334,7 @@ def successor_array(clip_index: ArrayLike, frame_index: ArrayLike) -> np.ndarray
 def copying_from_indices(
     indices: ArrayLike | Sequence[ArrayLike], successor: ArrayLike, fps: float
 ) -> CopyResult:
-    """Verbatim copying from the database indices a sampler chose (SPEC §10.4 "Copying").
+    """Verbatim copying from the database indices a sampler chose (design §10.4 "Copying").
 
     Step ``t − 1 → t`` is verbatim when ``indices[t] = successor[indices[t − 1]] ≠ −1``.
 

@@ -29,7 +29,7 @@ __all__ = ["texture_predict"]
 
 @eqx.filter_jit
 def _predict_labelled(textons: Texton, labels: Array, Y: Array) -> Array:
-    tex = _take(textons, labels)  # one texton per predicted frame
+    tex = take(textons, labels)  # one texton per predicted frame
     z1 = Y[1:-1] - tex.mu
     z2 = Y[:-2] - tex.mu
     x1 = jnp.einsum("tdk,td->tk", tex.C, z1)
@@ -42,7 +42,7 @@ def _predict_labelled(textons: Texton, labels: Array, Y: Array) -> Array:
     return tex.mu + jnp.einsum("tdk,tk->td", tex.C, xh) + rh
 
 
-def _take(textons: Texton, idx: Int[Array, " n"]) -> Texton:
+def take(textons: Texton, idx: Int[Array, " n"]) -> Texton:
     """The textons ``idx`` of a stack, stacked again (one per entry of ``idx``)."""
     return jax.tree.map(lambda a: a[idx], textons)
 
@@ -60,10 +60,10 @@ def texture_predict(
         ``(predictions (T − 2, D), labels (T,))``: the labels are the best segmentation's.
     """
     y = texture.observations(Y)
-    return _predict_segmented(texture, y, texture.segment(y))
+    return predict_segmented(texture, y, texture.segment(y))
 
 
-def _predict_segmented(
+def predict_segmented(
     texture: MotionTexture, y: Array, seg: Segmentation
 ) -> tuple[Float[Array, "T2 D"], np.ndarray]:
     """:func:`texture_predict` with the best segmentation of ``y`` already computed."""

@@ -1,6 +1,6 @@
 """Realism of a set of clips against another: distances between joint speed distributions.
 
-For every joint ``j`` and each of the three magnitudes ``|v|``, ``|a|``, ``|j|`` (SPEC §10.4),
+For every joint ``j`` and each of the three magnitudes ``|v|``, ``|a|``, ``|j|`` (design §10.4),
 the samples of all frames of all clips of a set are pooled into one empirical distribution, and
 two sets are compared by the 1-Wasserstein distance
 

@@ -1,5 +1,5 @@
 """One quality report: held-out density and prediction of a motion texture beside the
-baselines, and the motion metrics of generated clips beside the real-vs-real floor (SPEC
+baselines, and the motion metrics of generated clips beside the real-vs-real floor (design
 §10.4). Used by ``mtex evaluate`` and ``benchmarks/bench_quality.py``.
 
 Conventions:
@@ -25,7 +25,7 @@ from ._baselines import constant_velocity, fit_ar2, hold_last, prediction_error
 from ._contacts import ContactModel, fit_contacts
 from ._kinematics import as_motion_list
 from ._novelty import copying, copying_from_indices, novelty
-from ._prediction import _predict_segmented
+from ._prediction import predict_segmented
 from ._realism import RealismResult, realism
 from ._transitions import boundary_jumps, jump_p99
 
@@ -165,7 +165,7 @@ def density_report(
     segs = [texture.segment(y) for y in held_y]  # one Viterbi per clip: score and labels
     best = sum(float(seg.score) for seg in segs)
     preds = [
-        _predict_segmented(texture, jnp.asarray(y), seg)[0]
+        predict_segmented(texture, jnp.asarray(y), seg)[0]
         for y, seg in zip(held_y, segs, strict=True)
     ]
     err = prediction_error(

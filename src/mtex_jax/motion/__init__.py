@@ -1,5 +1,5 @@
 """Motion data and its geometry: ``Motion``, ``Skeleton``, rotations, forward kinematics and
-the observation features (``FeatureMap``, MT §6.1, SPEC §1).
+the observation features (``FeatureMap``, MT §6.1, design §1).
 """
 
 from ._features import (

@@ -1,4 +1,4 @@
-"""Observation vectors ``y_t`` (SPEC §1, MT §6.1) and their inverse.
+"""Observation vectors ``y_t`` (design §1, MT §6.1) and their inverse.
 
 Raw channels of frame ``t`` (before dropping constants and z-scaling), with ``u`` the up axis
 and ``h0, h1`` the two horizontal axes in cyclic order after ``u``:
@@ -35,7 +35,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..core import load_arrays_json, save_arrays_json
 from ._kinematics import forward_kinematics_arrays
-from ._motion import Motion, _check_compatible
+from ._motion import Motion, check_compatible
 from ._rotation import (
     expmap_to_quat,
     quat_conj,
@@ -431,7 +431,7 @@ def _fit_inputs(motions: Motion | Sequence[Motion]) -> list[Motion]:
     for i, m in enumerate(motions):
         if not isinstance(m, Motion):
             raise TypeError(f"FeatureMap.fit: item {i} is {type(m).__name__}, not a Motion")
-    _check_compatible(motions, "FeatureMap.fit", "resample with motion.resample(fps) first")
+    check_compatible(motions, "FeatureMap.fit", "resample with motion.resample(fps) first")
     return motions
 
 

@@ -223,7 +223,7 @@ def slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
     return out / np.linalg.norm(out, axis=-1, keepdims=True)
 
 
-def _check_compatible(motions: Sequence[Motion], where: str, hint: str) -> None:
+def check_compatible(motions: Sequence[Motion], where: str, hint: str) -> None:
     """Raise ``ValueError`` unless every motion has the first one's skeleton structure, frame
     rate and (absence of) per-frame local positions."""
     first = motions[0]
@@ -243,7 +243,7 @@ def concatenate_motions(motions: Sequence[Motion]) -> Motion:
     if not motions:
         raise ValueError("concatenate_motions: empty list")
     first = motions[0]
-    _check_compatible(motions, "concatenate_motions", "resample first")
+    check_compatible(motions, "concatenate_motions", "resample first")
     lp = None
     if first.local_positions is not None:
         lp = np.concatenate([np.asarray(m.local_positions) for m in motions])

@@ -3,44 +3,35 @@ likelihoods, learning by EM (also data-parallel over the processes of a ``jax.di
 :func:`learn_distributed`), segmentation, texton paths and synthesis.
 """
 
-from ._banded import (
+from ..linalg import (
+    BandedSolution as BandedSolution,
+    BlockTridiagCholesky as BlockTridiagCholesky,
     block_banded_matvec as block_banded_matvec,
     block_banded_solve as block_banded_solve,
     block_banded_solve_status as block_banded_solve_status,
-)
-from ._choreograph import (
-    choreograph as choreograph,
-    match_texton as match_texton,
+    block_tridiag_cholesky as block_tridiag_cholesky,
+    block_tridiag_solve as block_tridiag_solve,
 )
 from ._config import (
     LearnConfig as LearnConfig,
 )
-from ._distributed import (
+from ._learning.distributed import (
     learn_distributed as learn_distributed,
 )
-from ._durations import (
-    fit_durations as fit_durations,
-    flat_durations as flat_durations,
-)
-from ._fit import (
-    fit_texton as fit_texton,
-    texton_from_stats as texton_from_stats,
-)
-from ._forward import (
-    forward_log_likelihood as forward_log_likelihood,
-    log_likelihood as log_likelihood,
-)
-from ._frame_terms import (
-    frame_terms as frame_terms,
-)
-from ._frame_terms_ref import (
-    init_terms as init_terms,
-)
-from ._init import (
+from ._learning.init import (
     greedy_init as greedy_init,
     threshold_for_textons as threshold_for_textons,
 )
-from ._innovation_process import (
+from ._learning.learn import (
+    bic_select as bic_select,
+    learn as learn,
+)
+from ._model import (
+    MotionTexture as MotionTexture,
+    load_texture as load_texture,
+    texture_summary as texture_summary,
+)
+from ._noise.innovation_process import (
     InnovationProcess as InnovationProcess,
     draw_innovations as draw_innovations,
     fit_innovation_process as fit_innovation_process,
@@ -48,66 +39,81 @@ from ._innovation_process import (
     process_from_statistics as process_from_statistics,
     segment_innovations as segment_innovations,
 )
-from ._lds_refine import (
-    RefineReport as RefineReport,
-    exact_log_likelihood_segments as exact_log_likelihood_segments,
-    refine_texton as refine_texton,
-)
-from ._learn import (
-    bic_select as bic_select,
-    learn as learn,
-)
-from ._likelihood import (
-    exact_log_likelihood as exact_log_likelihood,
-    segment_log_likelihood as segment_log_likelihood,
-)
-from ._linalg import (
-    BandedSolution as BandedSolution,
-    BlockTridiagCholesky as BlockTridiagCholesky,
-    block_tridiag_cholesky as block_tridiag_cholesky,
-    block_tridiag_solve as block_tridiag_solve,
-)
-from ._model import (
-    MotionTexture as MotionTexture,
-    load_texture as load_texture,
-    texture_summary as texture_summary,
-)
-from ._paths import (
-    MAX_SELF_REPEATS as MAX_SELF_REPEATS,
-    path_cost as path_cost,
-    path_of_length as path_of_length,
-    random_path as random_path,
-    shortest_path as shortest_path,
-)
-from ._residual_bank import (
+from ._noise.residual_bank import (
     PLAUSIBLE_TAIL as PLAUSIBLE_TAIL,
     ResidualBank as ResidualBank,
     draw_residuals as draw_residuals,
     plausible_limit as plausible_limit,
     residual_bank as residual_bank,
 )
-from ._sample import (
-    sample_texton as sample_texton,
+from ._observation import (
+    OBSERVATION_MODELS as OBSERVATION_MODELS,
+    ObservationModel as ObservationModel,
+    observation_model as observation_model,
 )
-from ._scores import (
+from ._scoring.frame_terms import (
+    frame_terms as frame_terms,
+)
+from ._scoring.frame_terms_ref import (
+    init_terms as init_terms,
+)
+from ._scoring.scores import (
     SegmentScorer as SegmentScorer,
     segment_scores as segment_scores,
 )
-from ._segment import (
+from ._segmentation.durations import (
+    fit_durations as fit_durations,
+    flat_durations as flat_durations,
+)
+from ._segmentation.forward import (
+    forward_log_likelihood as forward_log_likelihood,
+    log_likelihood as log_likelihood,
+)
+from ._segmentation.segment import (
     Segmentation as Segmentation,
     segment as segment,
     segment_scorer as segment_scorer,
     viterbi_segments as viterbi_segments,
 )
-from ._select import (
-    choose_state_dim as choose_state_dim,
-    n_params as n_params,
+from ._synthesis.choreograph import (
+    choreograph as choreograph,
+    match_texton as match_texton,
 )
-from ._sequence import (
+from ._synthesis.paths import (
+    MAX_SELF_REPEATS as MAX_SELF_REPEATS,
+    path_cost as path_cost,
+    path_of_length as path_of_length,
+    random_path as random_path,
+    shortest_path as shortest_path,
+)
+from ._synthesis.sequence import (
     Synthesis as Synthesis,
     synthesize as synthesize,
 )
-from ._stats import (
+from ._synthesis.texton_synthesis import (
+    synthesize_texton as synthesize_texton,
+)
+from ._texton.fit import (
+    fit_texton as fit_texton,
+    texton_from_stats as texton_from_stats,
+)
+from ._texton.lds_refine import (
+    RefineReport as RefineReport,
+    exact_log_likelihood_segments as exact_log_likelihood_segments,
+    refine_texton as refine_texton,
+)
+from ._texton.likelihood import (
+    exact_log_likelihood as exact_log_likelihood,
+    segment_log_likelihood as segment_log_likelihood,
+)
+from ._texton.sample import (
+    sample_texton as sample_texton,
+)
+from ._texton.select import (
+    choose_state_dim as choose_state_dim,
+    n_params as n_params,
+)
+from ._texton.stats import (
     DynamicsStats as DynamicsStats,
     FrameStats as FrameStats,
     Subspace as Subspace,
@@ -115,11 +121,7 @@ from ._stats import (
     frame_stats as frame_stats,
     subspace_from_stats as subspace_from_stats,
 )
-from ._synthesis import (
-    synthesize_texton as synthesize_texton,
-)
-from ._texton import (
-    OBSERVATION_MODELS as OBSERVATION_MODELS,
+from ._texton.texton import (
     Texton as Texton,
     companion_matrix as companion_matrix,
     spectral_radius as spectral_radius,
@@ -137,6 +139,7 @@ __all__ = [
     "InnovationProcess",
     "LearnConfig",
     "MotionTexture",
+    "ObservationModel",
     "RefineReport",
     "ResidualBank",
     "SegmentScorer",
@@ -174,6 +177,7 @@ __all__ = [
     "log_likelihood",
     "match_texton",
     "n_params",
+    "observation_model",
     "path_cost",
     "path_of_length",
     "plausible_limit",

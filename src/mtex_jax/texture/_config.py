@@ -5,7 +5,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from ._checks import _check_dof
+from ._observation import observation_model
+from ._texton.checks import check_dof
 
 # the paper's learning settings, the defaults before issue 16 (see LearnConfig.paper)
 _PAPER: dict[str, Any] = dict(
@@ -63,8 +64,10 @@ class LearnConfig:
         bic_thresholds: thresholds to choose from by BIC (see :func:`bic_select`).
         observation: the observation model of every texton (see :class:`Texton`):
             ``"residual"`` (default: the residual outside the state subspace follows its own
-            AR(2)), ``"full"`` (``k = D``: an AR(2) on ``y``, an autoregressive HSMM) or
-            ``"paper"`` (MT-11: white residual noise).
+            AR(2)), ``"full"`` (``k = D``: an AR(2) on ``y``, an autoregressive HSMM),
+            ``"tied"`` (full textons sharing their dynamics matrices, with per-texton offsets
+            and shrunk covariances: design §10.10) or ``"paper"`` (MT-11: white residual
+            noise); the registry is :data:`OBSERVATION_MODELS`.
         durations: segment-length distribution of every texton on ``[tmin, tmax]``:
             ``"lognormal"`` (default: a discretised log-normal fitted in the M-step, mixed
             with 1 % of the flat one) or ``"flat"`` (the paper). With ``tmax=None`` the
@@ -97,6 +100,12 @@ class LearnConfig:
             (also fitted with ``"residuals"``, for :func:`synthesize_texton`). ``"white"``:
             independent from frame to frame (the paper). The likelihood is that of
             independent innovations in every case.
+        init: the initial segmentation. ``"greedy"`` (default): the greedy segmentation of
+            MT §4 (``threshold``). ``"chunks"``: every clip cut into chunks of
+            ``chunk_frames`` frames, clustered by k-means on their mean frames into
+            ``n_textons`` (default 16) textons (design §10.10), for tied textons with
+            ``selection="none"``: EM's pruning of rare textons then sets their number.
+        chunk_frames: the chunk length of ``init="chunks"``, within ``[tmin, tmax]``.
         min_segments: prune textons that the segmentation gives fewer training segments: after
             each E-step they are removed (``M``, ``π`` renormalised) and the clips segmented
             again by the remaining textons, which EM then refits (a texton fitted on one
@@ -126,6 +135,8 @@ class LearnConfig:
     selection: str = "bic"
     dof: float | None = 4.0
     innovations: str = "residuals"
+    init: str = "greedy"
+    chunk_frames: int = 80
 
     def __post_init__(self) -> None:
         if isinstance(self.min_segments, bool) or not isinstance(self.min_segments, int):
@@ -141,15 +152,17 @@ class LearnConfig:
                 f"LearnConfig.tmax must be None or an integer >= tmin = {self.tmin}, "
                 f"got {self.tmax!r}"
             )
-        if self.observation not in ("paper", "residual", "full"):
-            raise ValueError(
-                "LearnConfig.observation must be 'paper', 'residual' or 'full', "
-                f"got {self.observation!r}"
-            )
         try:
-            _check_dof(self.dof)
+            observation_model(self.observation)
+            check_dof(self.dof)
         except ValueError as e:
             raise ValueError(f"LearnConfig.{e}") from None
+        if self.init not in ("greedy", "chunks"):
+            raise ValueError(f"LearnConfig.init must be 'greedy' or 'chunks', got {self.init!r}")
+        if isinstance(self.chunk_frames, bool) or not isinstance(self.chunk_frames, int):
+            raise ValueError(
+                f"LearnConfig.chunk_frames must be an integer, got {self.chunk_frames!r}"
+            )
         if self.selection not in ("bic", "none"):
             raise ValueError(
                 f"LearnConfig.selection must be 'bic' or 'none', got {self.selection!r}"
@@ -196,7 +209,7 @@ class LearnConfig:
     def texton_dof(self) -> float | None:
         """The ``dof`` of the textons this config fits: ``dof`` for ``"full"`` ones, else
         ``None`` (textons with ``k < D`` are Gaussian)."""
-        return self.dof if self.observation == "full" else None
+        return self.dof if observation_model(self.observation).student_t else None
 
     @classmethod
     def paper(cls, **overrides: Any) -> LearnConfig:

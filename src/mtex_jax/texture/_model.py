@@ -17,12 +17,12 @@ from jaxtyping import Array, Float, Int
 from ..core import load_arrays_json, save_arrays_json
 from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
-from ._forward import log_likelihood
-from ._innovation_process import InnovationProcess
-from ._residual_bank import ResidualBank
-from ._segment import Segmentation, segment
-from ._texton import Texton
-from ._validate import TEXTURE_MEMBERS, check_texture_arrays
+from ._noise.innovation_process import InnovationProcess
+from ._noise.residual_bank import ResidualBank
+from ._segmentation.forward import log_likelihood
+from ._segmentation.segment import Segmentation, segment
+from ._texton.texton import Texton
+from ._texton.validate import TEXTURE_MEMBERS, check_texture_arrays
 
 FORMAT_VERSION = 1
 _KIND = "mtex_jax.MotionTexture"
@@ -134,7 +134,7 @@ class MotionTexture(eqx.Module):
         return y
 
     def log_likelihood(self, Y: Float[Any, "T D"] | Motion, *, per_frame: bool = False) -> float:
-        """Marginal ``log p(Y)`` over all segmentations and labels (SPEC §10.1), in nats.
+        """Marginal ``log p(Y)`` over all segmentations and labels (design §10.1), in nats.
 
         The semi-Markov forward algorithm (:func:`~mtex_jax.texture.log_likelihood`); it is
         ``≥`` :meth:`best_path_log_likelihood`. ``per_frame=True`` divides by the number of

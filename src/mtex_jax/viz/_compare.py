@@ -11,23 +11,23 @@ import numpy as np
 
 from ..motion import Motion
 from ._panel import (
-    _bones,
-    _Box,
-    _dot_joints,
-    _figure,
-    _ground,
-    _nice_step,
-    _Panel,
-    _plot_positions,
-    _trajectory_points,
+    Box,
+    Panel,
+    bone_segments,
+    dot_joints,
+    ground_height,
+    new_figure,
+    nice_step,
+    plot_positions,
+    trajectory_points,
 )
 from ._render import (
-    _MAX_GIF_FPS,
+    MAX_GIF_FPS,
     _check_motion,
-    _check_path,
-    _positive,
-    _require_plotting,
-    _save_gif,
+    check_path,
+    positive_float,
+    require_plotting,
+    save_gif,
 )
 
 __all__ = ["render_gif_pair"]
@@ -76,20 +76,20 @@ def render_gif_pair(
     """
     fn = "render_gif_pair"
     motions = (_check_motion(left, fn), _check_motion(right, fn))
-    out = _check_path(path, fn)
-    rate = _positive(fps, "fps", fn)
-    if rate > _MAX_GIF_FPS or any(rate > float(m.fps) * (1 + 1e-9) for m in motions):
+    out = check_path(path, fn)
+    rate = positive_float(fps, "fps", fn)
+    if rate > MAX_GIF_FPS or any(rate > float(m.fps) * (1 + 1e-9) for m in motions):
         raise ValueError(
-            f"{fn}: fps={fps!r} must be at most {_MAX_GIF_FPS:g} and at most both motions' "
+            f"{fn}: fps={fps!r} must be at most {MAX_GIF_FPS:g} and at most both motions' "
             "frame rates"
         )
-    length = left.duration if seconds is None else _positive(seconds, "seconds", fn)
-    size = _positive(panel_size, "panel_size", fn)
-    dpi = _positive(dpi, "dpi", fn)
+    length = left.duration if seconds is None else positive_float(seconds, "seconds", fn)
+    size = positive_float(panel_size, "panel_size", fn)
+    dpi = positive_float(dpi, "dpi", fn)
     if len(titles) != 2:
         raise ValueError(f"{fn}: titles must be two strings, got {titles!r}")
-    traj = [_trajectory_points(trajectories, m, fn) for m in motions]
-    _require_plotting(fn)
+    traj = [trajectory_points(trajectories, m, fn) for m in motions]
+    require_plotting(fn)
     from PIL import Image
 
     n_out = int(np.floor(length * rate + 1e-9)) + 1
@@ -98,31 +98,31 @@ def render_gif_pair(
     for m in motions:
         idx = np.rint(times * m.fps).astype(np.int64)
         shown.append(idx % m.n_frames if m.n_frames > 1 else np.zeros_like(idx))
-    pos = [_plot_positions(m, fn) for m in motions]
+    pos = [plot_positions(m, fn) for m in motions]
     spans = []
     for p, s in zip(pos, shown, strict=True):
         q = p[np.unique(s)]
         spans.append(float((q.reshape(-1, 3).max(axis=0) - q.reshape(-1, 3).min(axis=0)).max()))
     span = max(*spans, *(0.5 * m.skeleton.size for m in motions), 1e-9)
     half = 0.55 * span
-    step = _nice_step(2 * half)
+    step = nice_step(2 * half)
 
-    fig, canvas = _figure((2 * size, size + (0.35 if title else 0.0)), dpi)
+    fig, canvas = new_figure((2 * size, size + (0.35 if title else 0.0)), dpi)
     top = size / (size + (0.35 if title else 0.0))
     panels = []
     for k, (m, p, s) in enumerate(zip(motions, pos, shown, strict=True)):
         q = p[np.unique(s)].reshape(-1, 3)
         mid = (q.min(axis=0) + q.max(axis=0)) / 2
-        bones, colours = _bones(m, True)
-        panel = _Panel(
+        bones, colours = bone_segments(m, True)
+        panel = Panel(
             fig,
             (k / 2, 0.0, 0.5, top * 0.94),
-            box=_Box((float(mid[0]), float(mid[1]), float(mid[2])), half),
-            ground=_ground(p[np.unique(s)]),
+            box=Box((float(mid[0]), float(mid[1]), float(mid[2])), half),
+            ground=ground_height(p[np.unique(s)]),
             step=step,
             bones=bones,
             colours=colours,
-            joints=_dot_joints(m),
+            joints=dot_joints(m),
             trajectories=traj[k],
             elev=float(elev),
             azim=float(azim),
@@ -149,5 +149,5 @@ def render_gif_pair(
         rgba = np.asarray(canvas.buffer_rgba())
         return Image.fromarray(np.ascontiguousarray(rgba[..., :3]))
 
-    _save_gif(out, list(range(n_out)), draw, rate)
+    save_gif(out, list(range(n_out)), draw, rate)
     return out

@@ -17,10 +17,10 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
     from mpl_toolkits.mplot3d.axes3d import Axes3D
 
-_PLOT_EXTRA = 'install them with: pip install "mtex_jax[plot]"'
+PLOT_EXTRA = 'install them with: pip install "mtex_jax[plot]"'
 
 #: World → plot coordinates (rows: plot x, y, z), a rotation taking ``up_axis`` to plot z.
-_TO_PLOT = {
+TO_PLOT = {
     0: np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
     1: np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
     2: np.eye(3),
@@ -34,7 +34,7 @@ _GROUND_FACE = "#e6e6e6"
 _GROUND_GRID = "#b4b4b4"
 
 
-def _plot_positions(motion: Motion, fn: str) -> np.ndarray:
+def plot_positions(motion: Motion, fn: str) -> np.ndarray:
     """World positions of joints then end sites, ``(T, J + E, 3)``, in plot coordinates."""
     pos = np.asarray(forward_kinematics(motion, end_sites=True), dtype=np.float64)
     bad = ~np.isfinite(pos).all(axis=(1, 2))
@@ -44,7 +44,7 @@ def _plot_positions(motion: Motion, fn: str) -> np.ndarray:
         raise ValueError(
             f"{fn}: non-finite joint positions, first at frame {t} (point {_point_name(motion, j)})"
         )
-    return pos @ _TO_PLOT[motion.skeleton.up_axis].T
+    return pos @ TO_PLOT[motion.skeleton.up_axis].T
 
 
 def _point_name(motion: Motion, i: int) -> str:
@@ -67,7 +67,7 @@ def _side(name: str) -> int:
     return 0
 
 
-def _dot_joints(motion: Motion) -> np.ndarray:
+def dot_joints(motion: Motion) -> np.ndarray:
     """Joints marked with a dot: those carrying a chain of at least 8 % of the figure's size.
 
     This leaves out fingers, toes and eyes, whose dots would blot out the hands and head.
@@ -83,7 +83,7 @@ def _dot_joints(motion: Motion) -> np.ndarray:
     return np.nonzero(reach >= 0.08 * sk.size)[0]
 
 
-def _bones(motion: Motion, end_sites: bool) -> tuple[np.ndarray, list[str]]:
+def bone_segments(motion: Motion, end_sites: bool) -> tuple[np.ndarray, list[str]]:
     """Parent/child point index pairs ``(B, 2)`` and a colour per bone."""
     sk = motion.skeleton
     pairs: list[tuple[int, int]] = []
@@ -100,7 +100,7 @@ def _bones(motion: Motion, end_sites: bool) -> tuple[np.ndarray, list[str]]:
     return np.asarray(pairs, dtype=np.int64).reshape(-1, 2), colours
 
 
-def _trajectory_points(
+def trajectory_points(
     trajectories: str | int | Sequence[str | int] | None, motion: Motion, fn: str
 ) -> list[tuple[int, str]]:
     """Resolve joint names / point indices to ``(point index, label)`` pairs (deduplicated)."""
@@ -109,7 +109,7 @@ def _trajectory_points(
     sk = motion.skeleton
     n_points = sk.n_joints + len(sk.end_sites)
     items: list[object]
-    if isinstance(trajectories, str) or _is_int(trajectories):
+    if isinstance(trajectories, str) or is_int(trajectories):
         items = [trajectories]
     elif isinstance(trajectories, Sequence | np.ndarray):
         items = list(trajectories)
@@ -124,7 +124,7 @@ def _trajectory_points(
                     f"{', '.join(sk.names)}"
                 )
             idx = sk.names.index(item)
-        elif _is_int(item):
+        elif is_int(item):
             idx = int(item)
             if not 0 <= idx < n_points:
                 raise ValueError(
@@ -143,7 +143,7 @@ def _trajectory_points(
     return out
 
 
-def _nice_step(span: float) -> float:
+def nice_step(span: float) -> float:
     """A 1-2-5 × 10^k grid spacing giving about six cells over ``span``."""
     raw = max(span, 1e-12) / 6.0
     base = 10.0 ** math.floor(math.log10(raw))
@@ -154,7 +154,7 @@ def _nice_step(span: float) -> float:
 
 
 @dataclass(frozen=True)
-class _Box:
+class Box:
     """An axis-aligned cube in plot coordinates: centre and half side."""
 
     centre: tuple[float, float, float]
@@ -169,7 +169,7 @@ class _Box:
         return np.asarray(self.centre) + self.half
 
 
-def _with_nan_outside(path: np.ndarray, box: _Box) -> np.ndarray:
+def _with_nan_outside(path: np.ndarray, box: Box) -> np.ndarray:
     """Copy of a ``(K, 3)`` path with points outside the box replaced by NaN (a line break)."""
     out = path.copy()
     outside = ((path < box.lo - 1e-9) | (path > box.hi + 1e-9)).any(axis=1)
@@ -180,13 +180,13 @@ def _with_nan_outside(path: np.ndarray, box: _Box) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # One 3-D panel: axes, ground, bones, joints, trajectories — updated in place per frame
 # ---------------------------------------------------------------------------------------------
-class _Panel:
+class Panel:
     def __init__(
         self,
         fig: Figure,
         rect: tuple[float, float, float, float],
         *,
-        box: _Box,
+        box: Box,
         ground: float,
         step: float,
         bones: np.ndarray,
@@ -277,7 +277,7 @@ class _Panel:
             line.set_data_3d(path[:, 0], path[:, 1], path[:, 2])
 
 
-def _figure(size: tuple[float, float], dpi: float) -> tuple[Figure, FigureCanvasAgg]:
+def new_figure(size: tuple[float, float], dpi: float) -> tuple[Figure, FigureCanvasAgg]:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -286,10 +286,10 @@ def _figure(size: tuple[float, float], dpi: float) -> tuple[Figure, FigureCanvas
     return fig, canvas
 
 
-def _ground(pos: np.ndarray) -> float:
+def ground_height(pos: np.ndarray) -> float:
     """Ground height: the lowest point reached by any joint or end site."""
     return float(pos[..., 2].min())
 
 
-def _is_int(x: object) -> TypeGuard[int | np.integer]:
+def is_int(x: object) -> TypeGuard[int | np.integer]:
     return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)

@@ -26,27 +26,27 @@ from ..motion import Motion
 if TYPE_CHECKING:
     pass
 from ._panel import (
-    _PLOT_EXTRA,
-    _bones,
-    _Box,
-    _dot_joints,
-    _figure,
-    _ground,
-    _is_int,
-    _nice_step,
-    _Panel,
-    _plot_positions,
-    _trajectory_points,
+    PLOT_EXTRA,
+    Box,
+    Panel,
+    bone_segments,
+    dot_joints,
+    ground_height,
+    is_int,
+    new_figure,
+    nice_step,
+    plot_positions,
+    trajectory_points,
 )
 
 #: GIF players (browsers in particular) slow down frames shorter than 20 ms.
-_MAX_GIF_FPS = 50.0
+MAX_GIF_FPS = 50.0
 
 
 # ---------------------------------------------------------------------------------------------
 # Checks and preparation (no matplotlib needed)
 # ---------------------------------------------------------------------------------------------
-def _require_plotting(fn: str) -> None:
+def require_plotting(fn: str) -> None:
     """Raise a helpful ImportError when matplotlib or Pillow is missing."""
     missing = []
     try:
@@ -58,7 +58,7 @@ def _require_plotting(fn: str) -> None:
     except ImportError:
         missing.append("Pillow")
     if missing:
-        raise ImportError(f"{fn} needs {' and '.join(missing)}; {_PLOT_EXTRA}")
+        raise ImportError(f"{fn} needs {' and '.join(missing)}; {PLOT_EXTRA}")
 
 
 def _check_motion(motion: Any, fn: str) -> Motion:
@@ -69,7 +69,7 @@ def _check_motion(motion: Any, fn: str) -> Motion:
     return motion
 
 
-def _check_path(path: str | os.PathLike[str], fn: str) -> Path:
+def check_path(path: str | os.PathLike[str], fn: str) -> Path:
     p = Path(path)
     if p.exists() and p.is_dir():
         raise ValueError(f"{fn}: {p} is a directory, expected a file name")
@@ -79,7 +79,7 @@ def _check_path(path: str | os.PathLike[str], fn: str) -> Path:
     return p
 
 
-def _positive(x: Any, name: str, fn: str) -> float:
+def positive_float(x: Any, name: str, fn: str) -> float:
     if isinstance(x, bool) or not isinstance(x, int | float | np.integer | np.floating):
         raise ValueError(f"{fn}: {name} must be a positive number, got {x!r}")
     v = float(x)
@@ -110,7 +110,7 @@ def _gif_durations(n: int, fps: float) -> list[int]:
     return [int(10 * max(c, 1)) for c in cs]
 
 
-def _save_gif(out: Any, frames: Sequence[int], draw: Any, rate: float) -> None:
+def save_gif(out: Any, frames: Sequence[int], draw: Any, rate: float) -> None:
     """Draw ``frames`` with ``draw(i) -> PIL image`` and write them as a looping GIF at
     ``rate`` frames per second, atomically, with one palette taken from the last frame (no
     flicker; the background kept pure white)."""
@@ -189,7 +189,7 @@ def render_gif(
     """
     fn = "render_gif"
     motion = _check_motion(motion, fn)
-    out = _check_path(path, fn)
+    out = check_path(path, fn)
     t_all = motion.n_frames
     if frame_range is None:
         start, stop = 0, t_all
@@ -197,7 +197,7 @@ def render_gif(
         if (
             not isinstance(frame_range, Sequence)
             or len(frame_range) != 2
-            or not all(_is_int(v) for v in frame_range)
+            or not all(is_int(v) for v in frame_range)
         ):
             raise ValueError(
                 f"{fn}: frame_range must be (start, stop) integers, got {frame_range!r}"
@@ -210,39 +210,39 @@ def render_gif(
     if fps is None:
         rate = min(float(motion.fps), 30.0)
     else:
-        rate = _positive(fps, "fps", fn)
+        rate = positive_float(fps, "fps", fn)
         if rate > float(motion.fps) * (1 + 1e-9):
             raise ValueError(
                 f"{fn}: fps={fps!r} exceeds the motion's frame rate {motion.fps}; frames are "
                 "only skipped, never repeated (resample the motion first)"
             )
-        if rate > _MAX_GIF_FPS:
+        if rate > MAX_GIF_FPS:
             raise ValueError(
-                f"{fn}: fps={fps!r} is above {_MAX_GIF_FPS:g}; GIF frame durations are multiples "
+                f"{fn}: fps={fps!r} is above {MAX_GIF_FPS:g}; GIF frame durations are multiples "
                 "of 10 ms and players slow down frames shorter than 20 ms"
             )
     if not isinstance(size, Sequence) or len(size) != 2:
         raise ValueError(f"{fn}: size must be (width, height) in inches, got {size!r}")
-    width = _positive(size[0], "size[0]", fn)
-    height = _positive(size[1], "size[1]", fn)
-    dpi = _positive(dpi, "dpi", fn)
-    traj = _trajectory_points(trajectories, motion, fn)
-    _require_plotting(fn)
+    width = positive_float(size[0], "size[0]", fn)
+    height = positive_float(size[1], "size[1]", fn)
+    dpi = positive_float(dpi, "dpi", fn)
+    traj = trajectory_points(trajectories, motion, fn)
+    require_plotting(fn)
     from PIL import Image
 
-    pos = _plot_positions(motion[start:stop], fn)
-    ground = _ground(pos)
+    pos = plot_positions(motion[start:stop], fn)
+    ground = ground_height(pos)
     lo = pos.reshape(-1, 3).min(axis=0)
     hi = pos.reshape(-1, 3).max(axis=0)
     span = float(max((hi - lo).max(), motion.skeleton.size * 0.5, 1e-9))
     half = 0.55 * span
     mid = (lo + hi) / 2
-    box = _Box((float(mid[0]), float(mid[1]), float(mid[2])), half)
-    step = _nice_step(2 * half)
-    bones, colours = _bones(motion, end_sites)
+    box = Box((float(mid[0]), float(mid[1]), float(mid[2])), half)
+    step = nice_step(2 * half)
+    bones, colours = bone_segments(motion, end_sites)
 
-    fig, canvas = _figure((width, height), dpi)
-    panel = _Panel(
+    fig, canvas = new_figure((width, height), dpi)
+    panel = Panel(
         fig,
         (0.0, 0.0, 1.0, 1.0),
         box=box,
@@ -250,7 +250,7 @@ def render_gif(
         step=step,
         bones=bones,
         colours=colours,
-        joints=_dot_joints(motion),
+        joints=dot_joints(motion),
         trajectories=traj,
         elev=float(elev),
         azim=float(azim),
@@ -276,7 +276,7 @@ def render_gif(
 
     # One palette for every frame (no flicker): taken from the last frame, which shows the
     # complete trajectories and so every colour used.
-    _save_gif(out, [int(i) for i in shown], draw, rate)
+    save_gif(out, [int(i) for i in shown], draw, rate)
     return out
 
 
@@ -330,10 +330,10 @@ def render_filmstrip(
     """
     fn = "render_filmstrip"
     motion = _check_motion(motion, fn)
-    out = _check_path(path, fn)
+    out = check_path(path, fn)
     t_all = motion.n_frames
     if frames is None:
-        if not _is_int(n_frames) or n_frames < 1:
+        if not is_int(n_frames) or n_frames < 1:
             raise ValueError(f"{fn}: n_frames must be a positive integer, got {n_frames!r}")
         chosen = np.rint(np.linspace(0, t_all - 1, min(int(n_frames), t_all))).astype(np.int64)
     else:
@@ -342,16 +342,16 @@ def render_filmstrip(
         if len(frames) == 0:
             raise ValueError(f"{fn}: frames is empty")
         for f in frames:
-            if not _is_int(f) or not 0 <= int(f) < t_all:
+            if not is_int(f) or not 0 <= int(f) < t_all:
                 raise ValueError(f"{fn}: frame index {f!r} is not an integer in 0..{t_all - 1}")
         chosen = np.asarray([int(f) for f in frames], dtype=np.int64)
-    height = _positive(height, "height", fn)
-    dpi = _positive(dpi, "dpi", fn)
-    traj = _trajectory_points(trajectories, motion, fn)
-    _require_plotting(fn)
+    height = positive_float(height, "height", fn)
+    dpi = positive_float(dpi, "dpi", fn)
+    traj = trajectory_points(trajectories, motion, fn)
+    require_plotting(fn)
 
-    pos = _plot_positions(motion, fn)
-    ground = _ground(pos)
+    pos = plot_positions(motion, fn)
+    ground = ground_height(pos)
     sel = pos[chosen]  # (N, P, 3)
     lo = sel.min(axis=1)
     hi = sel.max(axis=1)
@@ -359,27 +359,27 @@ def render_filmstrip(
     span = float(max(extents.max(), motion.skeleton.size * 0.5, 1e-9))
     half = 0.55 * span
     z_centre = ground + span / 2
-    step = _nice_step(2 * half)
-    bones, colours = _bones(motion, end_sites)
+    step = nice_step(2 * half)
+    bones, colours = bone_segments(motion, end_sites)
 
     n = len(chosen)
     label_h = 0.3
     title_h = 0.4 if title else 0.0
     fig_h = height + label_h + title_h
-    fig, _ = _figure((n * height, fig_h), dpi)
+    fig, _ = new_figure((n * height, fig_h), dpi)
     bottom = label_h / fig_h
     panel_h = height / fig_h
     for k, i in enumerate(chosen):
         centre = ((lo[k, 0] + hi[k, 0]) / 2, (lo[k, 1] + hi[k, 1]) / 2, z_centre)
-        panel = _Panel(
+        panel = Panel(
             fig,
             (k / n, bottom, 1.0 / n, panel_h),
-            box=_Box((float(centre[0]), float(centre[1]), float(centre[2])), half),
+            box=Box((float(centre[0]), float(centre[1]), float(centre[2])), half),
             ground=ground,
             step=step,
             bones=bones,
             colours=colours,
-            joints=_dot_joints(motion),
+            joints=dot_joints(motion),
             trajectories=traj,
             elev=float(elev),
             azim=float(azim),

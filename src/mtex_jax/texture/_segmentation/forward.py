@@ -1,0 +1,201 @@
+"""Marginal likelihood of a sequence under a motion texture: the semi-Markov forward algorithm
+(design §10.1).
+
+With segment scores ``s_i(b, e)`` (design §3), an optional duration term ``log p_i(L)`` (zero
+for the paper's flat durations), transition log-probabilities ``log M[l, i]`` and initial
+log-probabilities ``log π[i]``:
+
+.. code-block:: text
+
+    α(e, i) = logsumexp_b [ s_i(b, e) + log p_i(e − b + 1)
+                            + (b = 0 ? log π_i : logsumexp_l α(b − 1, l) + log M[l, i]) ]
+    log p(y_0:T−1) = logsumexp_i α(T − 1, i)
+
+summed over every segmentation with ``tmin ≤ e − b + 1 ≤ tmax`` and every labelling. It is the
+Viterbi recursion of :func:`viterbi_segments` with logsumexp in place of max: the same split
+``s_i(b, e) = A_i(e) + B⁰_i(b)``, the same ring buffer of ``B``, the same ``lax.scan`` over
+blocks of ``tmin`` ends. Inside a block, the window of candidate starts of every end is
+gathered (in chunks of starts, with a running maximum, so the memory stays bounded even for
+``tmax = None``) and reduced by a logsumexp that is exact (no underflow of the window's largest
+term) and has finite gradients where a window holds no feasible start. The transition step
+``logsumexp_l α(e, l) + log M[l, i]`` is one matrix product in linear space, ``exp(α − max) ·
+exp(log M − column max)``, with the ``(P, N, N)`` logsumexp as the exact fallback if a column's
+terms all underflow.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax import lax
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from .._scoring.scores import SegmentScorer, segment_scores
+from .._texton.texton import Texton
+from .segment import check_dp_inputs, end_start_parts
+
+__all__ = ["forward_log_likelihood", "log_likelihood"]
+
+_GATHER_BUDGET = 1 << 21  # elements of one gathered (ends, starts, textons) chunk
+_FORCE_EXACT = False  # tests: always take the exact (slower) transition path
+
+
+def _safe_logsumexp(x: Array, axis: int) -> Array:
+    """``log Σ exp x`` along ``axis``; ``−inf`` (with zero gradient) where every term is
+    ``−inf``."""
+    m = lax.stop_gradient(jnp.max(x, axis=axis, keepdims=True))
+    m = jnp.where(jnp.isfinite(m), m, 0.0)
+    s = jnp.sum(jnp.exp(x - m), axis=axis)
+    pos = s > 0
+    return jnp.where(pos, jnp.log(jnp.where(pos, s, 1.0)) + jnp.squeeze(m, axis), -jnp.inf)
+
+
+@eqx.filter_jit
+def forward_log_likelihood(
+    scorer: SegmentScorer,
+    log_M: Float[Array, "n n"],
+    log_pi: Float[Array, " n"],
+    n_valid: Int[Array, ""],
+    tmin: int,
+    tmax: int,
+    log_durations: Float[Array, "n W"] | None = None,
+) -> Float[Array, ""]:
+    """``log p(y_0:n_valid−1)`` summed over all segmentations and labels (design §10.1).
+
+    Args:
+        scorer: prefix sums of the textons' per-frame terms over ``T`` (padded) frames.
+        log_M: ``(N_t, N_t)`` log transition matrix, ``log_M[l, i] = log P(i | l)``.
+        log_pi: ``(N_t,)`` log initial distribution.
+        n_valid: number of real frames ``T_s ≤ T`` (the rest is padding and ignored).
+        tmin, tmax: segment length bounds (static), ``3 ≤ tmin ≤ tmax``.
+        log_durations: ``(N_t, tmax − tmin + 1)`` log-probability of each segment length
+            ``L = tmin … tmax`` per texton; ``None`` for flat durations (the paper's).
+
+    Returns:
+        the scalar log-likelihood (``−inf`` if no segmentation fits).
+    """
+    n_t, T = scorer.init.shape
+    dtype = scorer.cum_dyn.dtype
+    log_M = jnp.asarray(log_M, dtype)
+    log_pi = jnp.asarray(log_pi, dtype)
+    P = tmin
+    Wn = tmax - tmin + 1
+    nb = -(-T // P)
+    Tp = nb * P
+    a_all, b0_all = end_start_parts(scorer, Tp)
+    # window offset w holds start b = e − tmax + 1 + w, i.e. length L = tmax − w
+    if log_durations is None:
+        dur_w = jnp.zeros((Wn, n_t), dtype)
+    else:
+        dur_w = jnp.asarray(log_durations, dtype)[:, ::-1].T
+    Wc = int(min(Wn, max(1, _GATHER_BUDGET // max(1, P * n_t))))
+    nc = -(-Wn // Wc)
+    dur_w = jnp.concatenate([dur_w, jnp.full((nc * Wc - Wn, n_t), -jnp.inf, dtype)], axis=0)
+    neg = jnp.asarray(-jnp.inf, dtype)
+    bbuf = jnp.full((tmax + Tp + 1, n_t), neg, dtype).at[tmax].set(b0_all[0] + log_pi)
+    rows = jnp.arange(P)[:, None] + jnp.arange(Wc)[None, :]  # (P, Wc)
+
+    def gathered(win):
+        win = jnp.concatenate([win, jnp.full((nc * Wc - Wn, n_t), neg, dtype)], axis=0)
+
+        def chunk(carry, c):
+            m, acc = carry
+            vals = win[rows + c * Wc] + lax.dynamic_slice_in_dim(dur_w, c * Wc, Wc)[None]
+            new_m = lax.stop_gradient(jnp.maximum(m, jnp.max(vals, axis=1)))
+            safe = jnp.where(jnp.isfinite(new_m), new_m, 0.0)
+            acc = acc * jnp.exp(m - safe) + jnp.sum(jnp.exp(vals - safe[:, None]), axis=1)
+            return (new_m, acc), None
+
+        init = (jnp.full((P, n_t), neg, dtype), jnp.zeros((P, n_t), dtype))
+        (m, acc), _ = lax.scan(chunk, init, jnp.arange(nc))
+        pos = acc > 0
+        safe_m = jnp.where(jnp.isfinite(m), m, 0.0)
+        return jnp.where(pos, jnp.log(jnp.where(pos, acc, 1.0)) + safe_m, neg)
+
+    col = jnp.max(log_M, axis=0)  # per column shift, so tiny probabilities do not underflow
+    col = jnp.where(jnp.isfinite(col), col, 0.0)
+    M_lin = jnp.exp(log_M - col)
+    M_pos = jnp.isfinite(log_M).astype(dtype)
+
+    def transition(v):
+        # logsumexp_l v(e, l) + log M[l, i] as one GEMM in linear space, shifted by the row's
+        # maximum; exact unless a column's terms all underflow where one is finite (then the
+        # (P, N, N) logsumexp)
+        top = lax.stop_gradient(jnp.max(v, axis=1, keepdims=True))
+        top = jnp.where(jnp.isfinite(top), top, 0.0)
+        total = jnp.exp(v - top) @ M_lin
+        pos = total > 0
+        fast = jnp.where(pos, jnp.log(jnp.where(pos, total, 1.0)) + top + col, neg)
+        feasible = (jnp.isfinite(v).astype(dtype) @ M_pos) > 0
+        exact = jnp.all(pos | ~feasible) & (not _FORCE_EXACT)
+        return lax.cond(
+            exact, lambda v: fast, lambda v: _safe_logsumexp(v[:, :, None] + log_M[None], 1), v
+        )
+
+    def block(bbuf, s):
+        win = lax.dynamic_slice(bbuf, (s + 1, 0), (tmax, n_t))  # b in [s − tmax + 1, s]
+        lse = gathered(win)
+        v = lax.dynamic_slice(a_all, (s, 0), (P, n_t)) + lse
+        v = jnp.where((s + jnp.arange(P) < T)[:, None], v, neg)
+        h = transition(v)  # (P, N): logsumexp_l v(e, l) + log M[l, i]
+        bnew = lax.dynamic_slice(b0_all, (s + 1, 0), (P, n_t)) + h
+        bbuf = lax.dynamic_update_slice(bbuf, bnew, (tmax + s + 1, 0))
+        return bbuf, v
+
+    _, V = lax.scan(block, bbuf, jnp.arange(nb) * P)
+    V = V.reshape(Tp, n_t)
+    return _safe_logsumexp(V[jnp.asarray(n_valid) - 1], axis=0)
+
+
+def log_likelihood(
+    textons: Texton,
+    log_M: Float[ArrayLike, "n n"],
+    log_pi: Float[ArrayLike, " n"],
+    Y: Float[ArrayLike, "T D"],
+    tmin: int,
+    tmax: int | None = None,
+    *,
+    log_durations: Float[ArrayLike, "n W"] | None = None,
+) -> Float[Array, ""]:
+    """Marginal log-likelihood ``log p(Y)`` of one sequence under textons and transitions.
+
+    The sum over every segmentation (``tmin ≤`` length ``≤ tmax``) and every labelling of the
+    textons' segment likelihoods (design §3) times transition and duration probabilities
+    (design §10.1); it is ``≥`` the score of the best segmentation (:func:`segment`), with
+    equality when one path carries all the mass. Differentiable in ``Y`` and the parameters.
+
+    Args:
+        textons: stacked textons (``N_t`` on the leading axis).
+        log_M: ``(N_t, N_t)`` log transition matrix (rows: from, columns: to).
+        log_pi: ``(N_t,)`` log initial distribution.
+        Y: ``(T, D)`` observations, ``T ≥ tmin``.
+        tmin: shortest segment (frames, ``≥ 3``).
+        tmax: longest segment; ``None`` for unbounded.
+        log_durations: ``(N_t, tmax − tmin + 1)`` log-probabilities of the lengths
+            ``tmin … tmax`` per texton, or ``None`` for flat durations.
+
+    Returns:
+        the scalar ``log p(Y)`` in nats (``−inf`` if no segmentation fits).
+
+    Raises:
+        ValueError: bad shapes, ``tmin < 3``, ``tmax < tmin``, a sequence shorter than
+            ``tmin``, non-finite ``Y``.
+    """
+    Y = jnp.asarray(Y)
+    if Y.ndim != 2:
+        raise ValueError(f"Y must have shape (T, D), got {Y.shape}")
+    T = Y.shape[0]
+    tmin, tmax, log_M, log_pi = check_dp_inputs(textons, log_M, log_pi, T, tmin, tmax)
+    if T < tmin:
+        raise ValueError(f"sequence has {T} frames, shorter than tmin = {tmin}")
+    n_t = log_pi.shape[0]
+    dur = None
+    if log_durations is not None:
+        dur = jnp.asarray(log_durations)
+        if dur.shape != (n_t, tmax - tmin + 1):
+            raise ValueError(
+                f"log_durations must have shape ({n_t}, {tmax - tmin + 1}) "
+                f"(lengths {tmin}..{tmax}), got {dur.shape}"
+            )
+    scorer = segment_scores(textons, Y)
+    return forward_log_likelihood(scorer, log_M, log_pi, jnp.asarray(T), tmin, tmax, dur)

@@ -1,0 +1,454 @@
+"""Whole-sequence synthesis and the virtual choreographer (design §5; MT §5, Fig. 1, 5, 8).
+
+A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthesised as follows.
+
+1. Key poses first: for every position ``m`` one training segment of texton ``ℓ_m`` (an
+   *instance*); its first two frames ``K_m (2, D)`` are the key poses and, unless lengths are
+   given, its length is ``l_m``. The instances are chosen together, as the chain whose
+   transitions are closest to transitions seen in training (texton ``ℓ_m`` asked to reach
+   ``K_{m+1}`` where, in its training clip, segment ``m`` reached ``K_next``; cost
+   ``‖K_next − K_{m+1}‖²``, zero for a pair of segments that were adjacent in training),
+   by dynamic programming over the path. Key poses whose two frames jump far more than the
+   others' (box-plot outliers: capture glitches, cuts at abrupt events) are left out where
+   the texton has other instances.
+2. Texton ``m < n`` is synthesised for ``l_m + 2`` frames with its first two frames held at
+   ``K_m`` (the given ``start`` pose for ``m = 1``) and its last two held at ``K_{m+1}``,
+   reprojected into its own subspace, ``x = C_{ℓ_m}ᵀ(K_{m+1} − μ_{ℓ_m})`` (MT §5.4,
+   :func:`~mtex_jax.texture.synthesize_texton`). The last two frames are dropped, because
+   they are the first two frames of texton ``m + 1``: shared frames appear once. The
+   innovations of each texton are drawn from the texture's
+   :class:`~mtex_jax.texture.InnovationProcess` (autocorrelated, with a persistent
+   Student-t scale), or independently when it has none.
+3. The last texton is held, the same way, at the key poses of a successor drawn from
+   ``M[ℓ_n, ·]`` that is not output — or, for the choreographer, at the requested end pose in
+   its own last two frames. No texton runs free, so an unstable texton (spectral radius > 1)
+   cannot diverge.
+4. The concatenated observations ``Y (Σ l_m, D)`` are decoded into a :class:`Motion` whose
+   root trajectory is integrated continuously from a start position and heading.
+
+All textons of a path are synthesised by one jit-compiled ``lax.map`` over the path with a
+common padded length (the end constraint sits at a per-texton row of a static-shaped mask),
+so paths with the same number of textons and similar lengths share one compilation.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from ...core import MAX_GENERATED_FRAMES, check_count, check_key
+from ...motion import Motion
+from .._model import MotionTexture
+from .._noise.draws import independent_innovations
+from .._noise.innovation_process import draw_innovations
+from .._noise.residual_bank import draw_residuals
+from .._texton.texton import Texton
+from .keyposes import key_pose_instances, next_texton
+from .paths import random_path
+from .texton_synthesis import Weighting, constrained_texton
+
+_PAD_TEXTONS = 8  # the path axis is padded to a multiple of this (compilation sharing)
+_PAD_FRAMES = 16  # and the per-texton length to a multiple of this
+
+Residual = Literal["blend", "subspace"]
+
+
+class Synthesis(eqx.Module):
+    """A synthesised sequence.
+
+    Attributes:
+        Y: ``(T, D)`` observations (the texture's feature space).
+        path: ``(n,)`` texton labels.
+        lengths: ``(n,)`` frames contributed by each texton (``Σ = T``).
+        starts: ``(n,)`` first output frame of each texton.
+        key_segments: ``(n,)`` training segment whose key poses (and length, unless lengths
+            were given) each texton used; ``-1`` where the start pose was given instead.
+        motion: the decoded :class:`Motion` (``None`` if the texture has no feature map).
+    """
+
+    Y: Float[Array, "T D"]
+    path: Int[Array, " n"]
+    lengths: Int[Array, " n"]
+    starts: Int[Array, " n"]
+    key_segments: Int[Array, " n"]
+    motion: Motion | None
+
+    @property
+    def n_frames(self) -> int:
+        return int(np.shape(self.Y)[0])
+
+    def frame_labels(self) -> np.ndarray:
+        """``(T,)`` texton label of every frame."""
+        return np.repeat(np.asarray(self.path), np.asarray(self.lengths))
+
+    def boundaries(self) -> np.ndarray:
+        """Output frames where a new texton starts (all but the first)."""
+        return np.asarray(self.starts)[1:]
+
+
+# --------------------------------------------------------------------------------------------
+# checks and key-pose instances
+# --------------------------------------------------------------------------------------------
+
+
+def check_texture(texture: MotionTexture) -> None:
+    if not isinstance(texture, MotionTexture):
+        raise TypeError(f"expected a MotionTexture, got {type(texture).__name__}")
+    labels = np.asarray(texture.key_pose_labels)
+    missing = np.setdiff1d(np.arange(texture.n_textons), labels)
+    if missing.size:
+        raise ValueError(
+            f"texton(s) {missing.tolist()} have no training segments (no key poses to start from)"
+        )
+    short = np.flatnonzero(np.asarray(texture.segment_lengths) < 2)
+    if short.size:
+        raise ValueError(
+            f"training segments {short[:5].tolist()} are shorter than 2 frames "
+            "(MotionTexture.segment_lengths)"
+        )
+
+
+def check_options(weighting: Any, residual: Any) -> None:
+    if weighting not in ("whitened", "paper"):
+        raise ValueError(f"weighting must be 'whitened' or 'paper', got {weighting!r}")
+    if residual not in ("blend", "subspace"):
+        raise ValueError(f"residual must be 'blend' or 'subspace', got {residual!r}")
+
+
+def _draw_durations(key: Array, texture: MotionTexture, path: np.ndarray) -> np.ndarray:
+    """One length per texton of ``path`` from its fitted duration distribution on
+    ``[tmin, tmax]`` (``texture.log_durations``)."""
+    assert texture.log_durations is not None
+    log_d = jnp.asarray(texture.log_durations)[jnp.asarray(path)]
+    idx = jax.random.categorical(key, log_d, axis=-1)
+    return np.asarray(idx).astype(np.int64) + int(texture.config.tmin)
+
+
+def check_n_frames(n_frames: Any) -> int:
+    if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
+        raise TypeError(f"n_frames must be an int, got {n_frames!r}")
+    return check_count(n_frames, "n_frames", MAX_GENERATED_FRAMES, low=4)
+
+
+def check_pair(name: str, pose: Any, D: int) -> np.ndarray:
+    try:
+        p = np.asarray(pose, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name} must be a (2, {D}) array of observation frames") from e
+    if p.shape != (2, D):
+        raise ValueError(f"{name} must have shape (2, {D}) (two observation frames), got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{name} contains NaN or inf")
+    return p
+
+
+def check_lengths(lengths: Any, n: int) -> np.ndarray:
+    arr = np.asarray(lengths)
+    if arr.shape != (n,) or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(
+            f"lengths must be {n} integers (one per texton), got {arr.dtype} {arr.shape}"
+        )
+    return arr.astype(np.int64)
+
+
+def scale_lengths(lengths: np.ndarray, total: int, min_len: np.ndarray) -> np.ndarray:
+    """Integer lengths proportional to ``lengths`` that sum to ``total`` (each ≥ its minimum)."""
+    if total < int(min_len.sum()):
+        raise ValueError(
+            f"{total} frames are too few for {lengths.size} textons (need >= {int(min_len.sum())})"
+        )
+    out = np.maximum(np.floor(lengths * total / lengths.sum()).astype(np.int64), min_len)
+    while out.sum() != total:  # at most n corrections
+        diff = total - int(out.sum())
+        if diff > 0:
+            out[np.argmax(lengths * total / lengths.sum() - out)] += 1
+        else:
+            slack = np.where(out > min_len, out - lengths * total / lengths.sum(), -np.inf)
+            out[np.argmax(slack)] -= 1
+    return out
+
+
+def _round_up(x: int, m: int) -> int:
+    return -(-x // m) * m
+
+
+# --------------------------------------------------------------------------------------------
+# the jitted core: all textons of a path
+# --------------------------------------------------------------------------------------------
+
+
+def path_core(
+    textons: Texton,
+    labels: Int[Array, " n"],
+    starts: Float[Array, "n 2 D"],
+    ends: Float[Array, "n 2 D"],
+    end_at: Int[Array, " n"],
+    v: Float[Array, "n l2 k"],
+    weighting: str,
+    blend: bool,
+) -> Float[Array, "n l D"]:
+    length = v.shape[1] + 2
+    t = jnp.arange(length)
+
+    def one(args: tuple[Array, ...]) -> Array:
+        lab, s, e, at, vi = args
+        tex = jax.tree.map(lambda a: a[lab], textons)
+
+        # rows from ``at`` on are held (the end pair, then frames that are dropped), so no
+        # free state follows the end constraint: a free tail would make the normal equations
+        # of an unstable texton as ill-conditioned as ρ^(2·tail)
+        poses = jnp.where((t == at)[:, None], e[0], e[1])
+        y = constrained_texton(tex, vi, s, None, (t >= at, poses), weighting)
+        if not blend:
+            return y
+        # residual outside the subspace, r = y − μ − C Cᵀ(y − μ), at the held frames, blended
+        # linearly from frame 1 to frame ``at`` so that held frames are the exact poses
+        res = lambda z: (z - tex.mu) - ((z - tex.mu) @ tex.C) @ tex.C.T
+        rs, re = res(s), res(e)
+        span = jnp.maximum(at - 1, 1).astype(y.dtype)
+        w = jnp.clip((t - 1) / span, 0.0, 1.0)[:, None]
+        r = (1.0 - w) * rs[1] + w * re[0]
+        r = jnp.where((t == 0)[:, None], rs[0], r)
+        r = jnp.where((t == at + 1)[:, None], re[1], r)
+        return y + r
+
+    # lax.map (not vmap): one unbatched factorisation per texton (see _linalg's notes)
+    return lax.map(one, (labels, starts, ends, end_at, v))
+
+
+_path_core_jit = eqx.filter_jit(path_core)
+
+
+def synthesize_path(
+    texture: MotionTexture,
+    key: Array | None,
+    path: np.ndarray,
+    lengths: np.ndarray,
+    seg_idx: np.ndarray,
+    start: np.ndarray | None,
+    end: np.ndarray,
+    end_in_output: bool,
+    weighting: str,
+    residual: str,
+) -> Array:
+    """Observations ``(Σ lengths, D)`` of a planned path (see the module docstring)."""
+    n = path.size
+    tex = texture.textons
+    dt = tex.mu.dtype
+    D, k = texture.obs_dim, int(tex.C.shape[-1])
+    key_poses = np.asarray(texture.key_poses)[seg_idx]  # (n, 2, D)
+    starts = key_poses.copy()
+    if start is not None:
+        starts[0] = start
+    ends = np.zeros_like(starts)
+    ends[:-1] = starts[1:]
+    ends[-1] = end
+    # texton m is held at the next key poses in rows l_m, l_m + 1 (dropped from the output);
+    # the last one at ``end`` there too, or in its own last two rows (``end_in_output``)
+    end_at = lengths.copy()
+    if end_in_output:
+        end_at[-1] -= 2
+    n_pad = _round_up(n, _PAD_TEXTONS)
+    l_pad = _round_up(int(end_at.max()) + 2, _PAD_FRAMES)
+    pad = n_pad - n
+    lab_p = np.concatenate([path, np.zeros(pad, np.int64)]).astype(np.int32)
+    st_p = np.concatenate([starts, np.repeat(starts[:1], pad, 0)])
+    en_p = np.concatenate([ends, np.zeros((pad, 2, D))])
+    at_p = np.concatenate([end_at, np.full(pad, l_pad - 2)]).astype(np.int32)
+    if key is None:
+        v = jnp.zeros((n_pad, l_pad - 2, k), dt)
+    elif texture.residuals is not None:  # blocks of the training residuals
+        v = draw_residuals(key, texture.residuals, jnp.asarray(lab_p), l_pad - 2, dt)
+    elif texture.innovations is None:
+        v = independent_innovations(key, (n_pad, l_pad - 2, k), dt, tex.dof)
+    else:  # each texton's stretch of innovations from the fitted process
+        v = draw_innovations(key, texture.innovations, (n_pad, l_pad - 2, k), dt, tex.dof)
+    out = _path_core_jit(
+        tex,
+        jnp.asarray(lab_p),
+        jnp.asarray(st_p, dt),
+        jnp.asarray(en_p, dt),
+        jnp.asarray(at_p),
+        v,
+        weighting,
+        residual == "blend",
+    )
+    rows = np.repeat(np.arange(n), lengths)
+    cols = np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    return out[jnp.asarray(rows), jnp.asarray(cols)]
+
+
+def finish(
+    texture: MotionTexture,
+    Y: Array,
+    path: np.ndarray,
+    lengths: np.ndarray,
+    seg_idx: np.ndarray,
+    start_position: Any,
+    start_heading: Any,
+    decode: bool,
+) -> Synthesis:
+    motion = None
+    if decode and texture.feature_map is not None:
+        motion = texture.feature_map.decode(Y, start_position, start_heading)
+    return Synthesis(
+        Y=Y,
+        path=jnp.asarray(path),
+        lengths=jnp.asarray(lengths),
+        starts=jnp.asarray(np.cumsum(lengths) - lengths),
+        key_segments=jnp.asarray(seg_idx),
+        motion=motion,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# public entry points
+# --------------------------------------------------------------------------------------------
+
+
+def synthesize(
+    key: Array | None,
+    texture: MotionTexture,
+    path: ArrayLike | None = None,
+    n_frames: int | None = None,
+    *,
+    lengths: ArrayLike | None = None,
+    start: Float[ArrayLike, "2 D"] | None = None,
+    start_texton: int | None = None,
+    start_position: Float[ArrayLike, 3] | None = None,
+    start_heading: float | None = None,
+    weighting: Weighting = "whitened",
+    residual: Residual = "blend",
+    decode: bool = True,
+    lengths_from: str = "durations",
+) -> Synthesis:
+    """Synthesise a new motion from a motion texture (MT §5; design §5).
+
+    Key poses are chosen for every texton on the path first; each texton is synthesised with
+    the constrained least-squares solver of :func:`~mtex_jax.texture.synthesize_texton`,
+    held at its own key poses and at the next texton's key poses (reprojected into its
+    subspace); the shared frames appear once; the last texton ends at the key poses of a
+    successor drawn from ``M``. See the module docstring for the frame layout.
+
+    * ``path=None``: a random walk on ``M`` (first texton from ``π`` or ``start_texton``)
+      until ``n_frames`` frames are covered; the last texton is shortened to fit.
+    * ``path`` given, ``n_frames=None``: the lengths of the key poses' training segments (or
+      ``lengths``).
+    * ``path`` and ``n_frames`` given: those lengths are rescaled to sum to ``n_frames``
+      (each texton extrapolated to its new length, MT Fig. 10).
+
+    Args:
+        texture: a learned :class:`~mtex_jax.texture.MotionTexture`.
+        key: JAX PRNG key; ``None`` = deterministic: zero noise (conditional means), the most
+            probable successor, and ties between equally good key-pose chains broken towards
+            median segment lengths (a random path needs a key). With a given path the key
+            poses and lengths depend on the key only through such ties and the successor.
+        path: ``(n,)`` texton labels, or ``None``.
+        n_frames: number of output frames.
+        lengths: ``(n,)`` frames per texton (with ``path``), instead of drawn ones.
+        start: ``(2, D)`` first two frames (held), instead of the first texton's key poses.
+        start_texton: first texton of a random path.
+        start_position: ``(3,)`` root position of frame 0 for decoding (default origin).
+        start_heading: root yaw of frame 0 (radians, default 0).
+        weighting: ``"whitened"`` (exact conditional samples) or ``"paper"`` (MT Eq. 9).
+        residual: ``"blend"`` (default): the part of the held poses outside the texton's
+            subspace is blended linearly across the texton, so held frames are the exact
+            poses and boundaries are continuous; ``"subspace"``: plain ``μ + C x`` (the
+            paper; boundaries then jump by the difference of two reprojections).
+        decode: decode to a :class:`Motion` (if the texture has a feature map).
+        lengths_from: where drawn texton lengths come from (when ``lengths`` is not given):
+            ``"durations"`` (default): each texton's fitted duration distribution
+            (``MotionTexture.log_durations``, ``LearnConfig.durations="lognormal"``), drawn
+            with ``key``; ``"segments"``: the training segment of the texton's key poses
+            (the paper). A texture with flat durations, or ``key=None``, uses the segments.
+
+    Returns:
+        a :class:`Synthesis` (observations, path, lengths, starts, decoded motion).
+
+    Raises:
+        ValueError / TypeError: bad path, lengths, poses or sizes.
+    """
+    check_key(key, "synthesize", allow_none=True)
+    check_texture(texture)
+    check_options(weighting, residual)
+    if lengths_from not in ("durations", "segments"):
+        raise ValueError(f"lengths_from must be 'durations' or 'segments', got {lengths_from!r}")
+    n_t = texture.n_textons
+    D = texture.obs_dim
+    start_np = None if start is None else check_pair("start", start, D)
+    if n_frames is not None:
+        n_frames = check_n_frames(n_frames)
+    k_path, k_inst, k_noise, k_succ = jax.random.split(key, 4) if key is not None else (None,) * 4
+
+    if path is None:
+        if lengths is not None:
+            raise ValueError("lengths need a path")
+        if n_frames is None:
+            raise ValueError("give a path or n_frames")
+        if k_path is None:
+            raise ValueError("a random path needs a key (key=None only with a given path)")
+        fitted = lengths_from == "durations" and texture.log_durations is not None
+        shortest = int(max(2, np.asarray(texture.segment_lengths).min()))
+        if fitted:  # the shortest length the duration distributions allow
+            shortest = min(shortest, int(texture.config.tmin))
+        n_max = n_frames // shortest + 2
+        walk = random_path(k_path, texture, n_max, start=start_texton)
+        walk_seg = key_pose_instances(texture, k_inst, walk)
+        drawn = np.asarray(texture.segment_lengths)[walk_seg]
+        if fitted:
+            drawn = _draw_durations(jax.random.fold_in(k_path, 1), texture, walk)
+        n = int(np.searchsorted(np.cumsum(drawn), n_frames) + 1)
+        lens = drawn[:n].copy()
+        lens[-1] = n_frames - int(lens[:-1].sum())
+        if lens[-1] < 2 and n > 1:  # fold a too-short tail into the previous texton
+            lens[-2] += lens[-1]
+            n, lens = n - 1, lens[:-1]
+        # the walk goes on: its next texton and key poses are the successor (n < n_max)
+        path_np, seg_idx = walk[:n], walk_seg[:n]
+        succ_seg = int(walk_seg[n])
+    else:
+        if start_texton is not None:
+            raise ValueError("start_texton is for random paths; the path's first label is given")
+        path_np = np.asarray(path)
+        if path_np.ndim != 1 or path_np.size < 1 or not np.issubdtype(path_np.dtype, np.integer):
+            raise ValueError(f"path must be a non-empty 1-D integer array, got {path_np.shape}")
+        if (path_np < 0).any() or (path_np >= n_t).any():
+            raise ValueError(f"path has labels outside [0, {n_t})")
+        path_np = path_np.astype(np.int64)
+        # the last texton is held at the key poses of a successor drawn from M (not output),
+        # chosen with the others
+        succ = next_texton(texture, k_succ, int(path_np[-1]))
+        chain = key_pose_instances(texture, k_inst, np.append(path_np, succ))
+        seg_idx, succ_seg = chain[:-1], int(chain[-1])
+        if lengths is not None:
+            lens = check_lengths(lengths, path_np.size)
+            if n_frames is not None and int(lens.sum()) != n_frames:
+                raise ValueError(f"lengths sum to {int(lens.sum())}, not n_frames = {n_frames}")
+        else:
+            lens = np.asarray(texture.segment_lengths)[seg_idx].astype(np.int64)
+            if (
+                lengths_from == "durations"
+                and texture.log_durations is not None
+                and k_inst is not None
+            ):
+                lens = _draw_durations(jax.random.fold_in(k_inst, 1), texture, path_np)
+            if n_frames is not None:
+                lens = scale_lengths(lens, n_frames, np.full(lens.size, 2))
+    if (lens < 2).any():
+        raise ValueError(f"every texton needs >= 2 frames, got lengths {lens.tolist()}")
+    # every texton is constrained at both ends (the last one at its successor's key poses),
+    # so none runs free (unstable textons diverge)
+    end_np = np.asarray(texture.key_poses)[succ_seg]
+    Y = synthesize_path(
+        texture, k_noise, path_np, lens, seg_idx, start_np, end_np, False, weighting, residual
+    )
+    seg_out = seg_idx.copy()
+    if start_np is not None:
+        seg_out[0] = -1
+    return finish(texture, Y, path_np, lens, seg_out, start_position, start_heading, decode)

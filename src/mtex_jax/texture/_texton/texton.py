@@ -1,0 +1,302 @@
+"""Textons: second-order linear dynamic systems (design §2, §3; MT §3.2 and App. B).
+
+A texton ``i`` is the linear dynamic system
+
+.. code-block:: text
+
+    y_t     = mu + C x_t + w_t,                     w_t ~ N(0, sigma2 I_D)     (MT-11)
+    x_{t+1} = A1 x_t + A2 x_{t-1} + d + B v_t,      v_t ~ N(0, I_k)            (MT-10)
+    [x_1; x_2] ~ N(m0, S0)
+
+with ``C`` a ``(D, k)`` matrix of orthonormal columns and ``Q = B Bᵀ`` (``B`` lower triangular).
+
+The *observation model* (static :attr:`Texton.observation`) says how the part of ``y`` outside
+the state subspace, the residual ``r_t = (I − C Cᵀ)(y_t − μ)``, is scored:
+
+* ``"paper"`` (MT-11): white noise, ``r_t ~ N(0, σ² I_{D−k})`` on every frame;
+* ``"residual"``: the first two frames of a segment as in the paper, then an isotropic AR(2)
+  on the residual, ``r_t = a₁ r_{t−1} + a₂ r_{t−2} + e_t``, ``e_t ~ N(0, s_r² I_{D−k})`` in the
+  residual subspace (``res_a = (a₁, a₂)``, ``res_s2 = s_r²``). The residual of smooth motion
+  is smooth, so its one-step prediction error is far smaller than its variance;
+* ``"full"``: ``k = D`` (no residual): the texton is a full-covariance AR(2) on ``y`` and the
+  texture an autoregressive hidden semi-Markov model.
+
+For ``"paper"`` and ``"full"`` ``res_a = 0`` and ``res_s2 = σ²``.
+
+A ``"full"`` texton may have Student-t dynamics innovations (static :attr:`Texton.dof` ``= ν``):
+``x_{t+1} = A1 x_t + A2 x_{t−1} + d + ε_t``, ``ε_t ~ t_ν(0, B Bᵀ)``. Real capture has rare
+large innovations (glitches, sudden contacts); a Gaussian fitted to them inflates ``Q`` for
+every frame, a t down-weights them (its M-step is iteratively reweighted least squares).
+
+This module provides
+
+* :class:`Texton` (a single texton or a stack of ``N_t`` textons along a leading axis) and
+  :func:`stack_textons`;
+* the closed-form fit from sufficient statistics (:func:`fit_texton`, and the summable
+  two-pass path :func:`frame_stats` → :func:`subspace_from_stats` → :func:`dynamics_stats` →
+  :func:`texton_from_stats`);
+* per-frame log-density terms for all textons at once (:func:`frame_terms`,
+  :func:`init_terms`) and the O(1) prefix-sum segment scores (:func:`segment_scores`,
+  :class:`SegmentScorer`) used by the segmentation DP;
+* the direct per-segment reference :func:`segment_log_likelihood`, the exact marginal
+  likelihood of the full LDS by a Kalman filter (:func:`exact_log_likelihood`) and
+  noise-driven sampling (:func:`sample_texton`, MT Fig. 4).
+
+Everything is a pure function of arrays; loops are ``lax.scan``/``lax.map``/``vmap``. The
+library never changes global JAX configuration: computations run in the floating dtype of the
+inputs (use ``jax.config.update("jax_enable_x64", True)`` yourself for float64).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.core import Tracer
+from jaxtyping import Array, Float
+
+from .._observation import observation_model
+from .checks import companion_blocks
+
+# --------------------------------------------------------------------------------------------
+# Texton container
+# --------------------------------------------------------------------------------------------
+
+
+class Texton(eqx.Module):
+    """Parameters of one texton, or of a stack of ``N_t`` textons (design §2).
+
+    A single texton has the shapes below with an empty batch shape. A *stack* of ``N_t``
+    textons (what the motion texture stores, see :func:`stack_textons`) has every field with
+    one extra leading axis of length ``N_t``; ``textons[i]`` returns texton ``i``. All textons
+    of a stack share ``D`` and ``k``.
+
+    Attributes:
+        mu: ``(*batch, D)`` observation mean ``μ``.
+        C: ``(*batch, D, k)`` observation matrix with orthonormal columns.
+        A1: ``(*batch, k, k)`` first-order dynamics matrix.
+        A2: ``(*batch, k, k)`` second-order dynamics matrix.
+        d: ``(*batch, k)`` dynamics offset.
+        B: ``(*batch, k, k)`` lower-triangular Cholesky factor of the dynamics noise
+            covariance, ``Q = B Bᵀ``.
+        sigma2: ``(*batch,)`` observation noise variance ``σ²`` (per dimension).
+        m0: ``(*batch, 2k)`` mean of the first two states ``[x_1; x_2]``.
+        S0: ``(*batch, 2k, 2k)`` covariance of ``[x_1; x_2]``.
+        res_a: ``(*batch, 2)`` AR(2) coefficients ``(a₁, a₂)`` of the residual
+            (``"residual"`` observation model; 0 otherwise).
+        res_s2: ``(*batch,)`` residual innovation variance ``s_r²`` (``σ²`` otherwise).
+        observation: ``"paper"``, ``"residual"`` or ``"full"`` (static; see the module doc).
+        dof: degrees of freedom ``ν`` of Student-t dynamics innovations (static, ``"full"``
+            textons only): ``x_t = A1 x_{t−1} + A2 x_{t−2} + d + ε_t`` with
+            ``ε_t ~ t_ν(0, Q)``, a scale mixture ``ε_t = B v_t / √g_t``, ``v_t ~ N(0, I)``,
+            ``g_t ~ Gamma(ν/2, rate ν/2)``. ``None``: Gaussian innovations ``N(0, Q)``.
+    """
+
+    mu: Float[Array, "*batch D"]
+    C: Float[Array, "*batch D k"]
+    A1: Float[Array, "*batch k k"]
+    A2: Float[Array, "*batch k k"]
+    d: Float[Array, "*batch k"]
+    B: Float[Array, "*batch k k"]
+    sigma2: Float[Array, "*batch"]
+    m0: Float[Array, "*batch k2"]
+    S0: Float[Array, "*batch k2 k2"]
+    res_a: Float[Array, "*batch 2"]
+    res_s2: Float[Array, "*batch"]
+    observation: str = eqx.field(static=True)
+    dof: float | None = eqx.field(static=True)
+
+    def __init__(
+        self,
+        mu: Any,
+        C: Any,
+        A1: Any,
+        A2: Any,
+        d: Any,
+        B: Any,
+        sigma2: Any,
+        m0: Any,
+        S0: Any,
+        res_a: Any = None,
+        res_s2: Any = None,
+        observation: str = "paper",
+        dof: float | None = None,
+    ) -> None:
+        """The fields as given; ``res_a`` and ``res_s2`` default to the paper's white residual
+        (``a = 0``, ``s_r² = σ²``), so textons made before the observation models (and the
+        paper's) need not give them."""
+        self.mu, self.C, self.A1, self.A2, self.d, self.B = mu, C, A1, A2, d, B
+        self.sigma2, self.m0, self.S0 = sigma2, m0, S0
+        if res_a is None:
+            s2 = sigma2 if hasattr(sigma2, "shape") else jnp.asarray(sigma2)
+            res_a = jnp.zeros((*s2.shape, 2), getattr(s2, "dtype", None))
+        self.res_a = res_a
+        self.res_s2 = sigma2 if res_s2 is None else res_s2
+        self.observation = observation
+        self.dof = observation_model(observation).check_dof(dof, where="Texton.dof")
+
+    def __check_init__(self) -> None:
+        shapes = {name: getattr(getattr(self, name), "shape", None) for name in TEXTON_FIELDS}
+        if any(s is None for s in shapes.values()):
+            return  # non-array leaves (e.g. jax.eval_shape sentinels): nothing to check
+        mu_shape = tuple(shapes["mu"])  # type: ignore[arg-type]
+        if len(mu_shape) < 1:
+            raise ValueError(f"Texton.mu must have shape (*batch, D), got {mu_shape}")
+        batch, D = mu_shape[:-1], mu_shape[-1]
+        a1 = tuple(shapes["A1"])  # type: ignore[arg-type]
+        if len(a1) != len(batch) + 2:
+            raise ValueError(
+                f"Texton.A1 must have shape (*batch, k, k) with batch={batch}, got {a1}"
+            )
+        k = a1[-1]
+        expected = {
+            "mu": (*batch, D),
+            "C": (*batch, D, k),
+            "A1": (*batch, k, k),
+            "A2": (*batch, k, k),
+            "d": (*batch, k),
+            "B": (*batch, k, k),
+            "sigma2": batch,
+            "m0": (*batch, 2 * k),
+            "S0": (*batch, 2 * k, 2 * k),
+            "res_a": (*batch, 2),
+            "res_s2": batch,
+        }
+        for name, exp in expected.items():
+            got = tuple(shapes[name])  # type: ignore[arg-type]
+            if got != tuple(exp):
+                raise ValueError(
+                    f"Texton.{name} must have shape {tuple(exp)} (batch={batch}, D={D}, "
+                    f"k={k}), got {got}"
+                )
+        if k < 1 or k > D:
+            raise ValueError(f"Texton state dimension k={k} must satisfy 1 <= k <= D={D}")
+        try:
+            observation_model(self.observation).check_state_dim(D, k)
+        except ValueError as e:
+            raise ValueError(f"Texton.{e}") from None
+
+    # -- shape information --------------------------------------------------------------------
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """Leading batch shape: ``()`` for one texton, ``(N_t,)`` for a stack."""
+        return tuple(self.mu.shape[:-1])
+
+    @property
+    def is_stacked(self) -> bool:
+        """Whether this holds a stack of textons (a leading texton axis)."""
+        return len(self.batch_shape) > 0
+
+    @property
+    def n_textons(self) -> int:
+        """Number of textons: ``N_t`` for a stack, ``1`` for a single texton."""
+        return int(self.batch_shape[0]) if self.is_stacked else 1
+
+    @property
+    def state_dim(self) -> int:
+        """State dimension ``k``."""
+        return int(self.A1.shape[-1])
+
+    @property
+    def obs_dim(self) -> int:
+        """Observation dimension ``D``."""
+        return int(self.mu.shape[-1])
+
+    # -- derived quantities -------------------------------------------------------------------
+
+    @property
+    def Q(self) -> Float[Array, "*batch k k"]:
+        """Dynamics noise covariance ``Q = B Bᵀ``, ``(*batch, k, k)``."""
+        return self.B @ jnp.swapaxes(self.B, -1, -2)
+
+    def __getitem__(self, index: Any) -> Texton:
+        """Index/slice a stack of textons along the leading texton axis."""
+        if not self.is_stacked:
+            raise TypeError("a single (unstacked) Texton cannot be indexed")
+        return jax.tree.map(lambda x: x[index], self)
+
+
+TEXTON_FIELDS = ("mu", "C", "A1", "A2", "d", "B", "sigma2", "m0", "S0", "res_a", "res_s2")
+
+
+def stack_textons(textons: Sequence[Texton]) -> Texton:
+    """Stack single textons into one :class:`Texton` with a leading axis of length ``N_t``.
+
+    Args:
+        textons: non-empty sequence of unstacked textons, all with the same ``D`` and ``k``.
+
+    Returns:
+        A stacked texton whose fields have shapes ``(N_t, ...)``.
+
+    Raises:
+        ValueError: if the sequence is empty, contains stacked textons or shapes differ.
+    """
+    textons = list(textons)
+    if not textons:
+        raise ValueError("stack_textons needs at least one texton, got an empty sequence")
+    first = textons[0]
+    for j, t in enumerate(textons):
+        if not isinstance(t, Texton):
+            raise ValueError(f"stack_textons: element {j} is {type(t).__name__}, not a Texton")
+        if t.is_stacked:
+            raise ValueError(
+                f"stack_textons: element {j} is already stacked (batch {t.batch_shape})"
+            )
+        if t.dof != first.dof:
+            raise ValueError(
+                f"stack_textons: element {j} has dof {t.dof}, element 0 has {first.dof}"
+            )
+        if t.observation != first.observation:
+            raise ValueError(
+                f"stack_textons: element {j} has observation model {t.observation!r}, "
+                f"element 0 has {first.observation!r}"
+            )
+        if (t.obs_dim, t.state_dim) != (first.obs_dim, first.state_dim):
+            raise ValueError(
+                f"stack_textons: element {j} has (D, k) = ({t.obs_dim}, {t.state_dim}), "
+                f"element 0 has ({first.obs_dim}, {first.state_dim})"
+            )
+    return jax.tree.map(_stack_leaves, *textons)
+
+
+def _stack_leaves(*xs: Array) -> Array:
+    """``jnp.stack(xs)``; concrete leaves are stacked on the host (an eager ``jnp.stack``, or
+    ``jnp.asarray`` of a NumPy array, compiles once per number of textons)."""
+    if any(isinstance(x, Tracer) for x in xs):
+        return jnp.stack(xs)
+    return jax.device_put(np.stack([np.asarray(x) for x in xs]))
+
+
+def companion_matrix(texton: Texton) -> Float[Array, "*batch k2 k2"]:
+    """Companion matrix ``[[A1, A2], [I, 0]]`` of the second-order dynamics, ``(*batch, 2k, 2k)``.
+
+    The stacked state ``[x_t; x_{t-1}]`` evolves as ``[x_{t+1}; x_t] = F [x_t; x_{t-1}] + ...``.
+    """
+    return companion_blocks(texton.A1, texton.A2)
+
+
+def spectral_radius(texton: Texton) -> Float[Array, "*batch"]:
+    """Spectral radius of the companion matrix (``< 1`` means stable dynamics)."""
+    return jnp.max(jnp.abs(jnp.linalg.eigvals(companion_matrix(texton))), axis=-1)
+
+
+def check_texton(name: str, texton: Any, stacked: bool | None = None) -> Texton:
+    if not isinstance(texton, Texton):
+        raise ValueError(f"{name} must be a Texton, got {type(texton).__name__}")
+    if stacked is True and not texton.is_stacked:
+        raise ValueError(f"{name} must be a stack of textons (leading axis), got a single one")
+    if stacked is False and texton.is_stacked:
+        raise ValueError(
+            f"{name} must be a single texton, got a stack with batch shape {texton.batch_shape}"
+            "; index it (textons[i]) or use jax.vmap"
+        )
+    if len(texton.batch_shape) > 1:
+        raise ValueError(
+            f"{name} must be a single texton or a 1-D stack, got batch shape {texton.batch_shape}"
+        )
+    return texton

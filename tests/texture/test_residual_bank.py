@@ -1,0 +1,241 @@
+"""Synthesis innovations replayed from the training residuals (:class:`ResidualBank`): the
+bank's rows against a per-frame numpy re-derivation, the glitch rule against scipy's F law,
+the draws against the blocks they must be and a uniform choice of segment (scipy's
+chi-square), the file format, path synthesis, bad input and float32."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.stats as st
+
+import mtex_jax as mj
+from mtex_jax.texture import (
+    LearnConfig,
+    ResidualBank,
+    draw_residuals,
+    load_texture,
+    residual_bank,
+    segment_innovations,
+)
+from mtex_jax.texture._learning.learn import with_innovations
+from mtex_jax.texture._noise.residual_bank import _draw_impl
+
+
+def _clips(n=3, T=200, D=3, seed=3):
+    """AR(2) clips with two regimes (slow and fast oscillation) so that EM keeps 2 textons."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        y = np.zeros((T, D))
+        for t in range(2, T):
+            a1 = 1.6 if (t // 50) % 2 == 0 else 0.4
+            y[t] = a1 * y[t - 1] - 0.8 * y[t - 2] + rng.standard_t(4, D) * 0.3
+        out.append(y)
+    out[0][GLITCH, 1] += 40.0  # a capture glitch: one frame of one channel, ~100 sd off
+    return out
+
+
+GLITCH = 101
+
+
+@pytest.fixture(scope="module")
+def learned():
+    ys = _clips()
+    cfg = LearnConfig(
+        tmin=20,
+        tmax=60,
+        observation="full",
+        max_iter=2,
+        n_textons=2,
+        selection="none",
+        min_segments=1,
+    )
+    assert cfg.innovations == "residuals"  # the default
+    return mj.learn(ys, cfg), ys
+
+
+def _residual(tex, y, j, i):
+    """Numpy: the whitened residual of frame ``j`` of clip ``y`` under texton ``i``."""
+    t = tex.textons[int(i)]
+    mu, C, A1, A2, d, B = (np.asarray(a) for a in (t.mu, t.C, t.A1, t.A2, t.d, t.B))
+    x = (y[j - 2 : j + 1] - mu) @ C
+    return np.linalg.solve(B, x[2] - A1 @ x[1] - A2 @ x[0] - d)
+
+
+def _kept(tex, ys):
+    """Numpy and scipy: the segments the glitch rule keeps, and their residuals."""
+    k = tex.textons.C.shape[-1]
+    limit = st.f.ppf(1 - 1e-6, k, tex.textons.dof)
+    out = []
+    for s, a, n, i in np.asarray(tex.segments):
+        u = np.asarray([_residual(tex, ys[s], j, i) for j in range(a + 2, a + n)])
+        if np.max(np.sum(u**2, axis=1)) / k <= limit:
+            out.append(((s, a, n, i), u))
+    return out
+
+
+def test_bank_rows_are_the_plausible_segments_residuals(learned):
+    tex, ys = learned
+    bank = tex.residuals
+    assert isinstance(bank, ResidualBank) and tex.innovations is not None
+    rows = np.asarray(bank.rows)
+    kept = _kept(tex, ys)
+    segs = np.asarray(tex.segments)
+    assert len(np.unique(segs[:, 3])) >= 2  # the test sees more than one texton
+    # the glitch's segment (and only it) is left out
+    hit = [(s, a, n) for s, a, n, _ in segs if s == 0 and a <= GLITCH < a + n]
+    assert len(kept) == len(segs) - 1 and hit
+    assert all(key[:3] != hit[0] for key, _ in kept)
+    assert np.array_equal(np.asarray(bank.labels), [key[3] for key, _ in kept])
+    assert np.array_equal(np.asarray(bank.lengths), [len(u) for _, u in kept])
+    for start, (_, u) in zip(np.asarray(bank.starts), kept, strict=True):
+        assert np.allclose(rows[start : start + len(u)], u, atol=1e-10)
+    assert rows.shape == (sum(len(u) for _, u in kept), tex.textons.C.shape[-1])
+    # and segment_innovations agrees on every kept segment
+    within = segment_innovations(tex.textons, ys, np.asarray([key for key, _ in kept]))
+    assert all(np.allclose(a, u, atol=1e-10) for a, (_, u) in zip(within, kept, strict=True))
+    # tail = 0 keeps every segment; a texton whose segments all fail keeps its best one
+    every = residual_bank(tex.textons, ys, segs, tail=0.0)
+    assert np.asarray(every.labels).size == len(segs)
+    strict = residual_bank(tex.textons, ys, segs, tail=0.999999)
+    assert sorted(np.asarray(strict.labels).tolist()) == sorted(np.unique(segs[:, 3]).tolist())
+
+
+def test_draws_are_blocks_from_a_uniformly_chosen_segment_of_the_texton(learned):
+    tex, _ = learned
+    bank = tex.residuals
+    rows, starts, lengths, labels = (
+        np.asarray(a) for a in (bank.rows, bank.starts, bank.lengths, bank.labels)
+    )
+    lab = np.asarray([int(labels[0])] * 3000 + [int(labels[-1])] * 5)
+    L = 130  # longer than some segments: those repeat from their first row
+    v = np.asarray(draw_residuals(jax.random.key(0), bank, lab, L))
+    assert v.shape == (lab.size, L, rows.shape[1])
+    k = rows.shape[1]
+    blocks = [np.resize(rows[a : a + n], (L, k)) for a, n in zip(starts, lengths, strict=True)]
+    found = []
+    for m in range(lab.size):
+        hit = [j for j in np.flatnonzero(labels == lab[m]) if np.array_equal(v[m], blocks[j])]
+        assert hit, f"block {m} is not a block of texton {lab[m]}'s segments"
+        found.append(hit[0])
+    assert (lengths < L).any()
+    # the segment is chosen uniformly among the texton's own
+    cand = np.flatnonzero(labels == lab[0])
+    counts = np.asarray([np.sum(np.asarray(found[:3000]) == j) for j in cand])
+    assert st.chisquare(counts, np.full(cand.size, 3000 / cand.size)).pvalue > 1e-3
+    # another key, other blocks; the same key, the same blocks
+    w = np.asarray(draw_residuals(jax.random.key(1), bank, lab, L))
+    assert not np.array_equal(v, w)
+    assert np.array_equal(v, np.asarray(draw_residuals(jax.random.key(0), bank, lab, L)))
+
+
+def test_draws_compile_once_per_shape(learned):
+    bank = learned[0].residuals
+    draw = eqx.filter_jit(eqx.debug.assert_max_traces(_draw_impl, max_traces=1))
+    a = draw(jax.random.key(0), bank, jnp.asarray([0, 1, 0]), 30)
+    b = draw(jax.random.key(1), bank, jnp.asarray([1, 1, 0]), 30)
+    assert a.shape == b.shape == (3, 30, bank.rows.shape[1])
+
+
+def test_synthesis_replays_the_bank_and_the_file_keeps_it(learned, tmp_path):
+    tex, _ = learned
+    a = mj.synthesize(jax.random.key(0), tex, n_frames=150).Y
+    b = mj.synthesize(jax.random.key(0), tex, n_frames=150).Y
+    c = mj.synthesize(jax.random.key(0), dataclasses.replace(tex, residuals=None), n_frames=150)
+    assert np.isfinite(np.asarray(a)).all() and np.array_equal(np.asarray(a), np.asarray(b))
+    assert not np.allclose(np.asarray(a), np.asarray(c.Y))
+    # zero noise draws nothing
+    z = mj.synthesize(None, tex, np.asarray([0]), lengths=[40]).Y
+    z0 = mj.synthesize(
+        None, dataclasses.replace(tex, residuals=None), np.asarray([0]), lengths=[40]
+    )
+    assert np.array_equal(np.asarray(z), np.asarray(z0.Y))
+    tex.save(tmp_path / "t.npz")
+    back = load_texture(tmp_path / "t.npz")
+    assert back.config.innovations == "residuals" and back.residuals is not None
+    for f in ("rows", "starts", "lengths", "labels"):
+        assert np.array_equal(np.asarray(getattr(back.residuals, f)), getattr(tex.residuals, f))
+    assert np.array_equal(np.asarray(mj.synthesize(jax.random.key(0), back, n_frames=150).Y), a)
+    assert "training residuals" in mj.texture.texture_summary(back)
+    with np.load(tmp_path / "t.npz") as f:
+        arrays = {k: f[k] for k in f.files}
+    half = {k: v for k, v in arrays.items() if k != "residuals.labels"}
+    np.savez(tmp_path / "half.npz", **half)
+    with pytest.raises(ValueError, match=r"half\.npz.*come together"):
+        load_texture(tmp_path / "half.npz")
+    for name, value, msg in (
+        ("residuals.labels", arrays["residuals.labels"] + tex.n_textons, "outside"),
+        ("residuals.starts", arrays["residuals.starts"] + 10**6, "row ranges"),
+    ):
+        np.savez(tmp_path / "bad.npz", **{**arrays, name: value})
+        with pytest.raises(ValueError, match=rf"bad\.npz.*{msg}"):
+            load_texture(tmp_path / "bad.npz")
+
+
+def test_bad_input_is_rejected(learned):
+    tex, ys = learned
+    bank = tex.residuals
+    key = jax.random.key(0)
+    with pytest.raises(TypeError, match="ResidualBank"):
+        draw_residuals(key, tex.innovations, [0], 5)  # type: ignore[arg-type]
+    for labels in ([], [[0]], [0.5]):
+        with pytest.raises(ValueError, match="labels"):
+            draw_residuals(key, bank, np.asarray(labels), 5)
+    for length in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="length"):
+            draw_residuals(key, bank, [0], length)  # type: ignore[arg-type]
+    one, two = jnp.ones(1, int), jnp.ones(2, int)
+    with pytest.raises(ValueError, match="rows"):
+        ResidualBank(rows=jnp.zeros((0, 3)), starts=one, lengths=one, labels=one)
+    with pytest.raises(ValueError, match="one shape"):
+        ResidualBank(rows=jnp.zeros((4, 3)), starts=two, lengths=one, labels=one)
+    with pytest.raises(ValueError, match="row ranges"):
+        ResidualBank(rows=jnp.zeros((4, 3)), starts=one * 2, lengths=one * 3, labels=one)
+    segs = np.asarray(tex.segments)
+    with pytest.raises(ValueError, match="lies outside clip"):
+        residual_bank(tex.textons, ys, segs + np.asarray([0, 1000, 0, 0]))
+    for tail in (1.0, -0.1):
+        with pytest.raises(ValueError, match="tail"):
+            residual_bank(tex.textons, ys, segs, tail=tail)
+    with pytest.raises(ValueError, match="no segment of 3 frames"):
+        residual_bank(tex.textons, ys, np.asarray([[0, 0, 2, 0]]))
+    with pytest.raises(ValueError, match=r"clip 1 must have shape"):
+        residual_bank(tex.textons, [ys[0], ys[1][:, :2], ys[2]], segs)
+    with pytest.raises(ValueError, match="labels outside"):
+        residual_bank(tex.textons, ys, segs + np.asarray([0, 0, 0, 9]))
+    with pytest.raises(ValueError, match="'fitted', 'white' or 'residuals'"):
+        LearnConfig(innovations="bootstrap")
+    # a share of the clips (distributed learning) needs every process's residuals
+    with pytest.raises(ValueError, match="needs gather"):
+        with_innovations(tex, ys, offset=0, reduce=lambda s: s)
+    # a bank whose labels name no texton of the model
+    wrong = ResidualBank(bank.rows, bank.starts, bank.lengths, bank.labels + tex.n_textons)
+    with pytest.raises(ValueError, match=r"residuals\.labels outside"):
+        dataclasses.replace(tex, residuals=wrong)
+    with pytest.raises(ValueError, match="columns"):
+        dataclasses.replace(
+            tex, residuals=ResidualBank(bank.rows[:, :1], *[bank.starts, bank.lengths, bank.labels])
+        )
+
+
+def test_float32_smoke(learned):
+    tex, ys = learned
+    t32 = jax.tree.map(
+        lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a,
+        tex.textons,
+    )
+    bank = residual_bank(t32, [y.astype(np.float32) for y in ys], tex.segments)
+    v = draw_residuals(jax.random.key(0), bank, [0, 1], 16, jnp.float32)
+    assert v.dtype == jnp.float32 and np.isfinite(np.asarray(v)).all()
+    assert np.allclose(
+        np.asarray(v),
+        np.asarray(draw_residuals(jax.random.key(0), tex.residuals, [0, 1], 16)),
+        atol=1e-3,
+        rtol=1e-3,
+    )
