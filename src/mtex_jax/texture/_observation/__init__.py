@@ -6,10 +6,12 @@ from .base import ObservationModel as ObservationModel
 from .full import FullObservation as FullObservation
 from .paper import PaperObservation as PaperObservation
 from .residual import ResidualObservation as ResidualObservation
+from .tied import TiedObservation as TiedObservation
 
 #: The registry: name (``Texton.observation``, ``LearnConfig.observation``) → model.
 OBSERVATION_MODELS: dict[str, ObservationModel] = {
-    m.name: m for m in (PaperObservation(), ResidualObservation(), FullObservation())
+    m.name: m
+    for m in (PaperObservation(), ResidualObservation(), FullObservation(), TiedObservation())
 }
 
 
@@ -28,5 +30,6 @@ __all__ = [
     "ObservationModel",
     "PaperObservation",
     "ResidualObservation",
+    "TiedObservation",
     "observation_model",
 ]
