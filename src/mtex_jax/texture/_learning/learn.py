@@ -298,7 +298,7 @@ def greedy_segments(
         segs, _ = greedy_init(ys, config, threshold)
     if verbose:
         print(
-            f"[mtex learn] greedy init: {int(segs[:, 3].max()) + 1} textons, {len(segs)} "
+            f"[mtex learn] {config.init} init: {int(segs[:, 3].max()) + 1} textons, {len(segs)} "
             f"segments, threshold {threshold:.4g}, {time.perf_counter() - t0:.1f} s",
             flush=True,
         )
