@@ -252,7 +252,7 @@ def test_sharded_learning_equals_single_device(tmp_path):
         import jax
         jax.config.update("jax_enable_x64", True)
         assert jax.device_count() == 2, jax.devices()
-        sys.path.insert(0, os.path.join(os.environ["TESTS_DIR"], "texture"))
+        sys.path[:0] = [os.environ["TESTS_DIR"], os.path.join(os.environ["TESTS_DIR"], "texture")]
         from test_learn import make_textons, sample_texture
         from mtex_jax.texture import LearnConfig, learn
         rng = np.random.default_rng(11)
