@@ -17,7 +17,10 @@ jax.config.update("jax_enable_x64", True)
 if os.environ.get("MTEX_NO_CACHE", "") not in ("1", "true", "yes"):
     from mtex_jax.core import enable_compilation_cache
 
-    enable_compilation_cache()
+    try:
+        enable_compilation_cache()
+    except (OSError, ValueError, RuntimeError):
+        pass  # no writable cache folder: compile as usual
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
