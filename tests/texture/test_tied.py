@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mtex_jax.texture import OBSERVATION_MODELS, fit_texton, observation_model
+from mtex_jax.texture import OBSERVATION_MODELS, choose_state_dim, fit_texton, observation_model
 from mtex_jax.texture._learning.mstep import fit_all
 from mtex_jax.texture._observation.tied import INIT_STARTS, IW_FRAMES
 from mtex_jax.texture._scoring.rows import row_chunks
@@ -110,6 +110,10 @@ def test_tied_is_registered_and_full_dimensional():
     extra_tied = model.n_params(2, D, D) - model.n_params(1, D, D)
     extra_full = full.n_params(2, D, D) - full.n_params(1, D, D)
     assert extra_tied < extra_full
+    # its state dimension is fixed (k = D): there is none to choose
+    ys = [np.random.default_rng(0).normal(size=(50, D))]
+    with pytest.raises(ValueError, match="fixed state dimension"):
+        choose_state_dim(ys, "tied")
 
 
 def test_tied_m_step_equals_numpy_rederivation():

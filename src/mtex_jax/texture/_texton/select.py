@@ -69,12 +69,12 @@ def choose_state_dim(
         ``(k, table)``: one dict per candidate (``k``, ``loglik``, ``params``, ``bic``).
     """
     model = observation_model(observation)
-    if model.fixed_state_dim(2) is not None:
-        raise ValueError(f"observation={observation!r} has a fixed state dimension (k = D)")
     ys = [np.asarray(y, dtype=np.float64) for y in ys]
     if not ys or any(y.ndim != 2 or y.shape[0] < 3 for y in ys):
         raise ValueError("ys must be non-empty (T, D) arrays with T >= 3")
     D = ys[0].shape[1]
+    if model.fixed_state_dim(D) is not None:
+        raise ValueError(f"observation={observation!r} has a fixed state dimension (k = D)")
     cands = _candidates(D) if candidates is None else [int(k) for k in candidates]
     if any(k < 1 or k > D for k in cands):
         raise ValueError(f"candidate state dimensions must lie in [1, {D}], got {cands}")
