@@ -20,7 +20,7 @@ import pytest
 import mtex_jax as mj
 from mtex_jax.cli import main
 from mtex_jax.texture import Texton
-from paper_settings import PAPER
+from paper_settings import PAPER, UNTIED
 
 DATA = Path(mj.__file__).resolve().parent / "data" / "deepmimic"
 
@@ -374,7 +374,7 @@ def test_constant_clip_does_not_move(tmp_path, capsys):
         np.repeat(np.asarray(m.rotations)[:1], 90, axis=0),
     )
     with pytest.raises(ValueError, match="the clip does not move"):
-        mj.learn([const], mj.LearnConfig(tmin=10, tmax=30, state_dim=4, fps=30.0))
+        mj.learn([const], mj.LearnConfig(tmin=10, tmax=30, state_dim=4, fps=30.0, **UNTIED))
     p = tmp_path / "const.bvh"
     mj.write_bvh(p, const)
     code, _, err = cli(capsys, "learn", str(p), "--tmin", "0.4", "-o", str(tmp_path / "c.npz"))
@@ -408,7 +408,7 @@ def test_every_subcommand_bad_arguments_one_line_exit_2(small_texture, tmp_path,
             [str(text), "-o", o],
         ],
         "segment": [[str(model)], [str(text), "example:dance_a"], [str(model), "missing.bvh"]],
-        "demo": [["--seconds", "-1"], ["--seconds", "nan"], ["--threshold", "0"], ["--seed", "x"]],
+        "demo": [["--seconds", "-1"], ["--seconds", "nan"], ["--max-iter", "x"], ["--seed", "x"]],
         "synth": [
             [str(model)],
             [str(model), "-o", "x.txt"],
@@ -464,6 +464,8 @@ def test_every_subcommand_bad_arguments_one_line_exit_2(small_texture, tmp_path,
             ["example:dance_a", "--test", "example:dance_b", "--particles", "0"],
             ["example:dance_a", "--test", "example:dance_b", "--fps", "-3"],
         ],
+        "textons": [[str(model)], [str(text), "-o", str(tmp_path / "g.png")]],
+        "view": [["example:dance_a"], ["missing.bvh", "-o", str(tmp_path / "v.html")]],
     }
     out = subprocess.run(
         [sys.executable, "-m", "mtex_jax", "--help"], capture_output=True, text=True, check=True

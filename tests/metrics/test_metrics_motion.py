@@ -133,13 +133,8 @@ def test_bad_inputs_raise_value_errors_naming_the_problem(clips):
         M.novelty(a[:50], [a], fps=FPS)  # shorter than a 1 s window
     bad_root = np.asarray(a.root_positions).copy()
     bad_root[7, 1] = np.nan
-    nan_clip = Motion(a.skeleton, a.fps, bad_root, a.rotations)
-    with pytest.raises(ValueError, match="NaN"):
-        M.realism(nan_clip, [a])
-    with pytest.raises(ValueError, match="NaN"):
-        M.copying(nan_clip, [a])
-    with pytest.raises(ValueError, match="NaN"):
-        M.transitions(nan_clip, np.array([5]), [a])
+    with pytest.raises(ValueError, match="NaN"):  # such a clip cannot reach the metrics
+        Motion(a.skeleton, a.fps, bad_root, a.rotations)
     humanoid = mj.io.load_example(mj.io.example_names()[0])
     with pytest.raises(ValueError, match="different skeleton"):
         M.realism([a, humanoid], [b])

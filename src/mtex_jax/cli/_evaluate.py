@@ -9,7 +9,17 @@ import time
 from typing import Any
 
 from ..core import atomic_write
-from ._validators import SOURCE_HELP, positive, positive_int, read_source
+from ._validators import (
+    SOURCE_HELP,
+    add_force,
+    float_arg,
+    int_arg,
+    output,
+    positive,
+    positive_int,
+    read_source,
+    seed_arg,
+)
 
 __all__ = ["register"]
 
@@ -30,6 +40,24 @@ def _read_clips(specs: list[str], fps: float, tmin: int, what: str) -> list[Any]
             )
         out.append(m)
     return out
+
+
+def _refuse_shared_clips(test: list[str], train: list[str]) -> None:
+    """``ValueError`` if a held-out clip is also a training clip (the same file or the same
+    example): the report would compare the clips with themselves."""
+    for t in test:
+        for r in train:
+            same = t == r
+            if not same and not t.startswith("example:") and not r.startswith("example:"):
+                try:
+                    same = os.path.samefile(t, r)
+                except OSError:
+                    same = False
+            if same:
+                raise ValueError(
+                    f"--test {t} is also a --train clip ({r}); held-out clips must differ "
+                    "from the training clips"
+                )
 
 
 def _fmt(x: Any) -> str:
@@ -61,6 +89,14 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     positive("seconds", args.seconds)
     if args.seconds > MAX_SYNTH_SECONDS:
         raise ValueError(f"--seconds {args.seconds:g} exceeds the limit of {MAX_SYNTH_SECONDS:g}")
+    inputs = (args.model, *args.test, *(args.train or ()))
+    output(args.output, "json", inputs, args.force)
+    plot_path = args.plot
+    if plot_path is None and args.output is not None:
+        plot_path = os.path.splitext(args.output)[0] + ".png"
+    plot_inputs = (*inputs, args.output) if args.output is not None else inputs
+    output(plot_path, "png", plot_inputs, args.force, option="--plot")
+    _refuse_shared_clips(args.test, args.train or [])
     t0 = time.perf_counter()
     tex = load_model(args.model)
     fm = tex.feature_map
@@ -73,6 +109,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     )
     print(f"{len(test)} held-out clips, {sum(m.n_frames for m in test):,} frames at {fm.fps:g} Hz")
 
+    print("held-out density: the forward algorithm over every clip...", flush=True)
     if train is not None:
         dens = density_report(tex, train, test)
     else:  # without training clips there are no baselines, only the texture's own rows
@@ -91,9 +128,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         print(f"  {name:28s} {r['loglik_per_frame']:10.2f}   {_fmt(r.get('prediction_mse'))}")
 
     n_frames = round(args.seconds * fm.fps)
+    print(f"\nsynthesising {args.synth} clips of {args.seconds:g} s...", flush=True)
     keys = jax.random.split(jax.random.key(args.seed), args.synth)
     syn = [synthesize(k, tex, n_frames=n_frames) for k in keys]
     motions = [s.motion for s in syn if s.motion is not None]
+    print("judging realism, contacts, transitions and novelty...", flush=True)
     judge = MotionJudge(train if train is not None else test, test, fps=fm.fps)
     rows = {"synthesised": judge.judge(motions, boundaries=[s.boundaries() for s in syn])}
     rows |= judge.real_rows()
@@ -153,9 +192,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="the training clips (baselines, realism floor, contact thresholds, novelty)",
     )
-    s.add_argument("--synth", type=int, default=4, help="syntheses to judge (default 4)")
-    s.add_argument("--seconds", type=float, default=10.0, help="length of each (default 10)")
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--synth", type=int_arg, default=4, help="syntheses to judge (default 4)")
+    s.add_argument("--seconds", type=float_arg, default=10.0, help="length of each (default 10)")
+    s.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
     s.add_argument("-o", "--output", default=None, help="write the report as JSON here")
     s.add_argument("--plot", default=None, help="distribution plot (.png; default beside -o)")
+    add_force(s)
     s.set_defaults(func=_cmd_evaluate)

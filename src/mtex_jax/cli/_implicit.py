@@ -12,7 +12,16 @@ from pathlib import Path
 from typing import Any
 
 from ..core import atomic_write
-from ._validators import non_negative, positive, positive_int
+from ._validators import (
+    add_force,
+    float_arg,
+    int_arg,
+    non_negative,
+    output,
+    positive,
+    positive_int,
+    seed_arg,
+)
 
 __all__ = ["register"]
 
@@ -75,8 +84,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.suffix.lower() != ".bvh":
         raise ValueError(f"-o/--output must end in .bvh, got {out}")
-    if not out.parent.exists():
-        raise ValueError(f"output folder {out.parent} does not exist")
+    output(out, "bvh", args.clips, args.force)
+    output(args.gif, "gif", (*args.clips, out), args.force, option="--gif")
     motions = _load(args.clips, args.fps)
     model = _build(args, motions)
     if args.start < 0:
@@ -167,8 +176,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
     positive("likelihood-sigma", args.likelihood_sigma)
     if args.start < 0:
         raise ValueError(f"--start must be ≥ 0, got {args.start}")
-    if args.plot and not Path(args.plot).parent.exists():
-        raise ValueError(f"output folder {Path(args.plot).parent} does not exist")
+    if args.plot:
+        output(args.plot, "png", (*args.clips, args.test), args.force, option="--plot")
     motions = _load(args.clips, args.fps)
     test = read_motion(args.test)
     if test.fps != motions[0].fps:
@@ -251,19 +260,19 @@ def register(subparsers) -> None:
     )
     s.add_argument("clips", nargs="+", help=_CLIP_HELP)
     s.add_argument("-o", "--output", required=True, help="output .bvh file")
-    s.add_argument("--frames", type=int, default=300, help="frames to generate (default 300)")
-    s.add_argument("--beta", type=float, default=0.1, help="sampling temperature (default 0.1)")
+    s.add_argument("--frames", type=int_arg, default=300, help="frames to generate (default 300)")
+    s.add_argument("--beta", type=float_arg, default=0.1, help="sampling temperature (default 0.1)")
     s.add_argument(
         "--noise",
-        type=float,
+        type=float_arg,
         default=0.02,
         help="pose noise in database standard deviations (default 0.02)",
     )
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    s.add_argument("--window", type=int, default=10, help="window length d (default 10)")
+    s.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
+    s.add_argument("--window", type=int_arg, default=10, help="window length d (default 10)")
     s.add_argument(
         "--fps",
-        type=float,
+        type=float_arg,
         default=30.0,
         help="resample the clips to this rate first (default 30, as in the paper)",
     )
@@ -286,29 +295,31 @@ def register(subparsers) -> None:
         default=None,
         help="apply the example's change of pose (on, default) or jump to its pose (off)",
     )
-    s.add_argument("--blend", type=int, default=None, help="transition blend frames (default 6)")
     s.add_argument(
-        "--lookahead", type=int, default=None, help="frames a searched example must continue"
+        "--blend", type=int_arg, default=None, help="transition blend frames (default 6)"
     )
     s.add_argument(
-        "--continuation", type=int, default=None, help="frames played per search (default 6)"
+        "--lookahead", type=int_arg, default=None, help="frames a searched example must continue"
     )
     s.add_argument(
-        "--max-run", type=int, default=None, help="cap on verbatim frames (0: none; default 12)"
+        "--continuation", type=int_arg, default=None, help="frames played per search (default 6)"
     )
-    s.add_argument("--candidates", type=int, default=None, help="tree walks per search")
     s.add_argument(
-        "--leaf-cap", type=int, default=None, help="leaf members examined per walk (0: all)"
+        "--max-run", type=int_arg, default=None, help="cap on verbatim frames (0: none; default 12)"
+    )
+    s.add_argument("--candidates", type=int_arg, default=None, help="tree walks per search")
+    s.add_argument(
+        "--leaf-cap", type=int_arg, default=None, help="leaf members examined per walk (0: all)"
     )
     s.add_argument(
         "--hubness",
-        type=float,
+        type=float_arg,
         default=None,
         help="weight of the kernel's hubness correction (default 0.2; 0: the paper's kernel)",
     )
     s.add_argument(
         "--root-blend",
-        type=int,
+        type=int_arg,
         default=None,
         help="frames over which the root velocity's offset fades (default 1; -1: --blend)",
     )
@@ -320,33 +331,37 @@ def register(subparsers) -> None:
     )
     s.add_argument(
         "--min-explained",
-        type=float,
+        type=float_arg,
         default=None,
         help="choose the tree depth b by explained variance (default b = floor(log2 n))",
     )
     s.add_argument(
         "--recent-weight",
-        type=float,
+        type=float_arg,
         default=None,
         help="extra weight of the newest pose in the window distance (default 32; 0: the paper)",
     )
     s.add_argument(
         "--foot-lock",
-        type=float,
+        type=float_arg,
         default=None,
         help="strength in [0, 1] of the root correction that keeps planted feet in place "
         "(default 1; --paper: 0)",
     )
     s.add_argument(
         "--seam-smoothing",
-        type=int,
+        type=int_arg,
         default=None,
         help="frames around each transition that are low-passed (default 2; 0 and --paper: off)",
     )
     s.add_argument(
-        "--start", type=int, default=0, help="frame of the first clip that starts the seed window"
+        "--start",
+        type=int_arg,
+        default=0,
+        help="frame of the first clip that starts the seed window",
     )
     s.add_argument("--gif", default=None, help="also render an animated GIF here")
+    add_force(s)
     s.set_defaults(func=_cmd_synth)
 
     s = subparsers.add_parser(
@@ -358,26 +373,29 @@ def register(subparsers) -> None:
     )
     s.add_argument("clips", nargs="+", help=_CLIP_HELP)
     s.add_argument("--test", required=True, help="the clip to track (should not be in CLIPS)")
-    s.add_argument("--particles", type=int, default=300, help="particles (default 300)")
-    s.add_argument("--frames", type=int, default=None, help="frames to track (default all)")
-    s.add_argument("--start", type=int, default=0, help="first frame of the initial window")
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    s.add_argument("--window", type=int, default=10, help="window length d (default 10)")
-    s.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
-    s.add_argument("--beta", type=float, default=0.1, help="implicit prior temperature")
-    s.add_argument("--noise", type=float, default=0.1, help="implicit prior pose noise (γ units)")
+    s.add_argument("--particles", type=int_arg, default=300, help="particles (default 300)")
+    s.add_argument("--frames", type=int_arg, default=None, help="frames to track (default all)")
+    s.add_argument("--start", type=int_arg, default=0, help="first frame of the initial window")
+    s.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
+    s.add_argument("--window", type=int_arg, default=10, help="window length d (default 10)")
+    s.add_argument("--fps", type=float_arg, default=30.0, help="frame rate (default 30)")
+    s.add_argument("--beta", type=float_arg, default=0.1, help="implicit prior temperature")
+    s.add_argument(
+        "--noise", type=float_arg, default=0.1, help="implicit prior pose noise (γ units)"
+    )
     s.add_argument(
         "--cv-noise",
-        type=float,
+        type=float_arg,
         default=0.1,
         help="constant-velocity noise (units of the database acceleration std)",
     )
-    s.add_argument("--pixel-noise", type=float, default=2.0, help="observation noise (px)")
+    s.add_argument("--pixel-noise", type=float_arg, default=2.0, help="observation noise (px)")
     s.add_argument(
         "--likelihood-sigma",
-        type=float,
+        type=float_arg,
         default=20.0,
         help="pixel std assumed by the likelihood (default 20)",
     )
     s.add_argument("--plot", default=None, help="write a PNG of the error per frame")
+    add_force(s)
     s.set_defaults(func=_cmd_track)

@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from ._validators import SOURCE_HELP, read_source
+from ._validators import SOURCE_HELP, add_force, float_arg, output, read_source
 
 __all__ = ["register"]
 
@@ -42,6 +42,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise ValueError(
             f"-o/--output must end in .gif (animation) or .png (filmstrip), got {str(out)!r}"
         )
+    output(out, out.suffix.lower().lstrip("."), (args.file,), args.force)
     m = read_source(args.file)
     traj = args.trajectories.split(",") if args.trajectories else None
     t0 = time.perf_counter()
@@ -94,7 +95,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("-o", "--output", required=True, help="output .gif (animation) or .png")
     s.add_argument(
         "--fps",
-        type=float,
+        type=float_arg,
         default=None,
         help="playback frame rate of the GIF (default: min(clip fps, 30))",
     )
@@ -104,11 +105,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="comma-separated joint names whose paths are drawn, e.g. lFoot,rFoot",
     )
     s.add_argument("--title", default=None, help="title drawn on the picture")
+    add_force(s)
     s.set_defaults(func=_cmd_render)
 
     s = sub.add_parser(
         "examples",
-        help="list the embedded example clips",
-        description="List the embedded DeepMimic example clips.",
+        help="list the shipped clips (CMU salsa, DeepMimic) and the CMU credit",
+        description="List the shipped clips: the 14 CMU salsa clips of subject 60 (the "
+        "default data, read as example:salsa/NAME, with their training / held-out split) and "
+        "the DeepMimic humanoid3d clips (read as example:NAME); print the CMU credit.",
     )
     s.set_defaults(func=_cmd_examples)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import os
+import stat
 import struct
 import zipfile
 import zlib
@@ -21,6 +22,7 @@ __all__ = ["load_arrays_json", "save_arrays_json"]
 
 _META_KEY = "__meta_json__"
 _MAX_MEMBERS = 10_000
+_MAX_META_BYTES = 16 << 20
 # what a damaged archive may raise while it is read (CRC, inflate, header, short data)
 _READ_ERRORS = (
     zipfile.BadZipFile,
@@ -85,10 +87,12 @@ def load_arrays_json(
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Read a file written by :func:`save_arrays_json`.
 
-    Every member's ``.npy`` header is read first and checked before any data is allocated:
-    numeric or boolean dtype (never pickled objects), at most
-    :data:`~mtex_jax.core.MAX_MEMBER_BYTES` per array and
-    :data:`~mtex_jax.core.MAX_MODEL_BYTES` in all.
+    Only a regular file is opened (a FIFO or a device is refused first). The sizes the zip
+    directory declares are summed before anything is inflated (at most
+    :data:`~mtex_jax.core.MAX_MODEL_BYTES` in all); then every member's ``.npy`` header is read
+    and checked before any data is allocated: numeric or boolean dtype (never pickled
+    objects), at most :data:`~mtex_jax.core.MAX_MEMBER_BYTES` per array; unknown members are
+    refused before their data is read, and each array is read only when its turn comes.
 
     Args:
         path: the ``.npz`` file.
@@ -103,10 +107,16 @@ def load_arrays_json(
             an array too large or of a refused dtype, unknown or missing arrays, wrong kind).
     """
     p = Path(path)
-    if not p.exists():
-        raise ValueError(f"{p}: no such file")
-    if p.is_dir():
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        raise ValueError(f"{p}: no such file") from None
+    except OSError as e:
+        raise ValueError(f"{p}: cannot read model file: {e.strerror or e}") from None
+    if stat.S_ISDIR(st.st_mode):
         raise ValueError(f"{p}: is a directory, not a model file")
+    if not stat.S_ISREG(st.st_mode):  # a FIFO would block, a device never end
+        raise ValueError(f"{p}: not a regular file (a device, FIFO or socket); not a model file")
     try:
         zf = zipfile.ZipFile(p)
     except zipfile.BadZipFile:
@@ -125,6 +135,14 @@ def load_arrays_json(
             members[name[:-4]] = info
         if _META_KEY not in members:
             raise ValueError(f"{p}: missing metadata ({_META_KEY}); not an mtex_jax model file")
+        declared = sum(info.file_size for info in infos)  # from the directory: nothing inflated
+        if declared > MAX_MODEL_BYTES + _MAX_META_BYTES:
+            raise ValueError(
+                f"{p}: its members declare {declared:,} bytes, more than the limit "
+                f"MAX_MODEL_BYTES = {MAX_MODEL_BYTES:,}; not read"
+            )
+        if members[_META_KEY].file_size > _MAX_META_BYTES:
+            raise ValueError(f"{p}: metadata of {members[_META_KEY].file_size:,} bytes; not read")
         total = 0
         arrays: dict[str, np.ndarray] = {}
         try:

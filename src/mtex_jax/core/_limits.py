@@ -4,6 +4,10 @@ Every limit is a module constant; a reader or generator that exceeds one raises 
 ``ValueError`` naming the file (and line, for text formats) or the argument, the value and the
 limit. The frame limit of the readers and of :meth:`Motion.resample` is also a keyword
 argument (``max_frames=``) of those functions, for a caller that needs longer clips.
+
+The checks of :func:`check_count` and :func:`check_size` read a limit by its name at call
+time, so :func:`set_limit` (``mtex_jax.core.set_limit("MAX_TEXTONS", 5000)``) raises it for
+every later check; their errors name the limit and this way of raising it.
 """
 
 from __future__ import annotations
@@ -13,19 +17,32 @@ from typing import Any
 
 __all__ = [
     "MAX_ABS_VALUE",
+    "MAX_CANDIDATES",
+    "MAX_COMPONENTS",
     "MAX_DEPTH",
     "MAX_FRAMES",
     "MAX_FRAME_TIME",
     "MAX_GENERATED_FRAMES",
+    "MAX_INPUT_BYTES",
+    "MAX_ITERATIONS",
     "MAX_JOINTS",
     "MAX_MEMBER_BYTES",
+    "MAX_MIN_SEGMENTS",
     "MAX_MODEL_BYTES",
     "MAX_PARTICLES",
+    "MAX_PATH_TEXTONS",
+    "MAX_SEGMENT_FRAMES",
+    "MAX_STATE_DIM",
+    "MAX_TEXTONS",
     "MIN_FRAME_TIME",
     "check_count",
     "check_frame_time",
     "check_json_depth",
+    "check_real",
+    "check_size",
     "json_depth",
+    "limit",
+    "set_limit",
 ]
 
 #: Frames of a clip after reading or resampling (BVH ``Frames:``, DeepMimic keyframes resampled
@@ -46,14 +63,91 @@ MAX_ABS_VALUE = 1e7
 #: Bytes of one array of a model file, from its ``.npy`` header, before it is read.
 MAX_MEMBER_BYTES = 256 << 20
 #: Bytes of all arrays of one model file together.
-MAX_MODEL_BYTES = 1 << 30
+MAX_MODEL_BYTES = 512 << 20
 #: Particles of one tracking run.
 MAX_PARTICLES = 1_000_000
+#: Bytes of one motion file (BVH or DeepMimic JSON) read into memory (the salsa clips are
+#: about 1 MB each).
+MAX_INPUT_BYTES = 256 << 20
+#: Frames of one texton segment (``LearnConfig.tmax``, ``tmin``, ``chunk_frames``, segment
+#: lengths of a model file): the segment scores take ``T × tmax`` entries.
+MAX_SEGMENT_FRAMES = 2_000
+#: Textons of a model (``LearnConfig.n_textons``, ``min_segments``, the ``M`` of a model file).
+MAX_TEXTONS = 10_000
+#: Textons on one synthesised path (``path_of_length``, ``synthesize(lengths=...)``).
+MAX_PATH_TEXTONS = 100_000
+#: ``LearnConfig.min_segments`` (training segments a texton needs to be kept).
+MAX_MIN_SEGMENTS = 10_000
+#: Texton state dimension (``LearnConfig.state_dim``).
+MAX_STATE_DIM = 4_096
+#: Iterations of a learning loop (``LearnConfig.max_iter``).
+MAX_ITERATIONS = 100_000
+#: Tree walks per search of the implicit model's sampler (``SynthesisConfig.candidates``):
+#: each walk holds a few windows of the database.
+MAX_CANDIDATES = 10_000
+#: Principal components of the implicit model's tree (``n_components``).
+MAX_COMPONENTS = 30
 
 
-def check_count(value: Any, name: str, limit: int, *, low: int = 1, exc: type = ValueError) -> int:
+_NAMES = (
+    "MAX_FRAMES",
+    "MAX_GENERATED_FRAMES",
+    "MAX_JOINTS",
+    "MAX_DEPTH",
+    "MAX_ABS_VALUE",
+    "MAX_MEMBER_BYTES",
+    "MAX_MODEL_BYTES",
+    "MAX_PARTICLES",
+    "MAX_INPUT_BYTES",
+    "MAX_SEGMENT_FRAMES",
+    "MAX_TEXTONS",
+    "MAX_PATH_TEXTONS",
+    "MAX_STATE_DIM",
+    "MAX_ITERATIONS",
+    "MAX_COMPONENTS",
+    "MAX_MIN_SEGMENTS",
+    "MAX_CANDIDATES",
+)
+
+
+def limit(name: str) -> int | float:
+    """The current value of the limit ``name`` (e.g. ``"MAX_TEXTONS"``)."""
+    if name not in _NAMES:
+        raise KeyError(f"unknown limit {name!r}; the limits are {', '.join(_NAMES)}")
+    return globals()[name]
+
+
+def set_limit(name: str, value: int) -> int | float:
+    """Set the limit ``name`` to ``value`` for every later check; returns the old value.
+
+    Functions that take a limit as a keyword default (``max_frames=MAX_FRAMES`` of the
+    readers) keep the value they were defined with; pass the keyword there.
+    """
+    old = limit(name)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"set_limit: {name} must be a positive int, got {value!r}")
+    globals()[name] = value
+    return old
+
+
+def _over(name: str, v: Any, lim: str | int) -> str:
+    if isinstance(lim, str):
+        return (
+            f"{name} = {v:,} exceeds the limit {lim} = {limit(lim):,} (raise it with "
+            f"mtex_jax.core.set_limit({lim!r}, N))"
+        )
+    return f"{name} = {v:,} exceeds the limit of {lim:,} (mtex_jax.core limits)"
+
+
+def check_count(
+    value: Any, name: str, limit: int | str, *, low: int = 1, exc: type = ValueError
+) -> int:
     """``value`` as an int if ``low <= value <= limit``; ``TypeError`` if it is not an integer
-    (a bool is not), else ``exc`` naming ``name``, the value and the limit."""
+    (a bool is not), else ``exc`` naming ``name``, the value and the limit.
+
+    ``limit`` is a number or the name of a limit of this module (read when called, so that
+    :func:`set_limit` applies).
+    """
     import numpy as np
 
     if isinstance(value, bool) or not isinstance(value, int | np.integer):
@@ -61,8 +155,51 @@ def check_count(value: Any, name: str, limit: int, *, low: int = 1, exc: type = 
     v = int(value)
     if v < low:
         raise exc(f"{name} must be >= {low}, got {v}")
-    if v > limit:
-        raise exc(f"{name} = {v:,} exceeds the limit of {limit:,} (mtex_jax.core limits)")
+    lim = globals()[limit] if isinstance(limit, str) else limit
+    if v > lim:
+        raise exc(_over(name, v, limit))
+    return v
+
+
+def check_size(value: Any, name: str, limit: str) -> None:
+    """``ValueError`` naming ``name`` and the limit ``limit`` (a name of this module) if the
+    number ``value`` (a size computed before an allocation) exceeds that limit."""
+    lim = globals()[limit]
+    if value > lim:
+        raise ValueError(_over(name, int(value), limit))
+
+
+def check_real(
+    value: Any,
+    name: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    open_low: bool = False,
+) -> float:
+    """``value`` as a float if it is a finite real number in range, else ``ValueError`` (or
+    ``TypeError`` for a non-number) naming ``name``.
+
+    Args:
+        value: the number (a bool is refused).
+        name: what to call it in the error.
+        low: the smallest value allowed (``None``: no bound); excluded when ``open_low``.
+        high: the largest value allowed (``None``: no bound).
+    """
+    import numpy as np
+
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise TypeError(f"{name} must be a real number, got {value!r}")
+    try:
+        v = float(value)
+    except OverflowError:
+        raise ValueError(f"{name} is too large: {value}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {v}")
+    if low is not None and (v < low or (open_low and v == low)):
+        raise ValueError(f"{name} must be {'>' if open_low else '>='} {low:g}, got {v:g}")
+    if high is not None and v > high:
+        raise ValueError(f"{name} must be <= {high:g}, got {v:g}")
     return v
 
 

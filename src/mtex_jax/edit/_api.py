@@ -191,8 +191,10 @@ def edit(
         constraints: from :func:`make_constraints` for this motion's ``T`` and ``D``.
         weights: :class:`EditWeights` (default weights when ``None``).
         segments: per-frame segmentation (default: :func:`segments_of`).
-        start_position, start_heading: root position ``(3,)`` and yaw of frame 0 (default:
-            the motion's own; the origin for raw observation vectors).
+        start_position: root position ``(3,)`` of frame 0 (default: the motion's own; the
+            origin for raw observation vectors).
+        start_heading: root yaw of frame 0 (default: the motion's own; 0 for raw observation
+            vectors).
         floor_joints: joints the floor applies to (default: every joint with a moving
             rotation channel, and the feet).
         relative: prior on the change (default) or the plain negative log-likelihood.
@@ -200,7 +202,8 @@ def edit(
         max_steps: Levenberg–Marquardt steps per round.
         fallback: run L-BFGS if Levenberg–Marquardt did not converge (not for float32
             variables while x64 is enabled, where optimistix 0.1.0 mixes dtypes).
-        cg_steps, cg_rtol: conjugate-gradient limits of each Levenberg–Marquardt step.
+        cg_steps: conjugate-gradient iterations of each Levenberg–Marquardt step.
+        cg_rtol: conjugate-gradient relative tolerance of each Levenberg–Marquardt step.
         solver: ``"auto"``, ``"gn"`` or ``"lm"`` (above); ``max_steps`` applies to either.
 
     Returns:
@@ -281,9 +284,16 @@ def edit_many(
     --xla_force_host_platform_device_count=N``); the library never sets this itself.
 
     Args:
-        texture, motions, constraints: the texture and one constraints object per motion.
-        weights, segments, floor_joints, relative, rounds, max_steps, solver: as for
-            :func:`edit`.
+        texture: the motion texture.
+        motions: the motions to edit.
+        constraints: one constraints object per motion.
+        weights: as for :func:`edit`.
+        segments: as for :func:`edit`.
+        floor_joints: as for :func:`edit`.
+        relative: as for :func:`edit`.
+        rounds: as for :func:`edit`.
+        max_steps: as for :func:`edit`.
+        solver: as for :func:`edit`.
         devices: the devices to split the batch over (default: ``jax.devices()``; one
             device: a plain ``vmap``).
 

@@ -330,7 +330,8 @@ def solve_edit(
         cg_steps: conjugate-gradient steps per linear solve (a solve that needs more fails
             the step: Levenberg–Marquardt then reports no convergence).
         cg_rtol: relative tolerance of the conjugate-gradient solves.
-        rtol, atol: Levenberg–Marquardt termination tolerances (on the step and the cost).
+        rtol: Levenberg–Marquardt termination tolerance on the step.
+        atol: Levenberg–Marquardt termination tolerance on the cost.
 
     Returns:
         :class:`EditResult` (``converged`` refers to the last round).

@@ -29,7 +29,8 @@ def synthesize(
     Args:
         key: PRNG key (or ``None`` for the zero-noise synthesis), as for the texture's.
         texture: the motion texture.
-        *args, **kwargs: passed to :func:`mtex_jax.texture.synthesize`.
+        *args: passed to :func:`mtex_jax.texture.synthesize`.
+        **kwargs: passed to :func:`mtex_jax.texture.synthesize`.
         clean: clean the synthesis (remove foot skating and floor penetration).
         contacts: the training clips' contact model (required with ``clean=True``).
     """

@@ -19,7 +19,7 @@ The synthesis uses ``s = ‖Ψ_i − Φ‖² − h r_i`` with a weight ``h``
 (``SynthesisConfig.hubness``). ``r_i`` is heavy-tailed (isolated, unusual windows have radii
 many times the median), so the full CSLS weight ``h = ½`` also favours poor matches and the
 transitions get rough; the default ``h = 0.2`` was chosen on validation folds of the
-training clips (``benchmarks/results/implicit_quality_validation*.md``).
+training clips (design §7.5; the folds' figures are on the documentation's results page).
 """
 
 from __future__ import annotations

@@ -11,6 +11,7 @@ from typing import Literal
 import jax.numpy as jnp
 import numpy as np
 
+from ..core import check_count, check_size
 from ..motion import FeatureMap, Motion, foot_joints
 from ._database import MotionDatabase
 from ._feet import foot_contact
@@ -70,14 +71,10 @@ def learn(
             (tree, kernels, hubness radii) weighs it ``1 + w`` times:
             ``‖Ψ_i − Φ‖² + w ‖ψ_i − φ‖²``. ``0`` is the paper's window distance. A
             transition then starts from a closer pose and velocity, so its fading offset
-            adds less motion: on three validation folds of the training clips
-            (``benchmarks/implicit_quality.py --validate``, no foot lock) the mean speed,
-            acceleration and jerk distances are 1.19, 1.04, 1.15× the floor with ``w = 32``
-            against 1.34, 1.30, 1.49× with ``0``. The default 32 had, together with the
-            synthesis foot lock, the smallest worst-fold ratio to issue 18's targets among
-            16, 32, 64 and 128. For tracking (:func:`~mtex_jax.implicit.track`) use ``0``:
-            with 300 particles it gave 172 mm mean joint error against 263 mm with 32
-            (``benchmarks/results/implicit_tracking_check.md``).
+            adds less motion (design §7.5). The default 32 was chosen, together with the
+            synthesis foot lock, on validation folds of the training clips. For tracking
+            (:func:`~mtex_jax.implicit.track`) use ``0``: the paper's window distance tracks
+            better (the documentation's results page has both).
 
     Returns:
         the model (``summary()`` reports ``b``, the explained variance and leaf sizes).
@@ -119,6 +116,8 @@ def learn(
             isinstance(arg, bool) or not isinstance(arg, int | np.integer) or arg < 1
         ):
             raise ValueError(f"ImplicitModel.build: {name} must be a positive integer")
+        if arg is not None:
+            check_count(arg, f"ImplicitModel.build: {name}", "MAX_COMPONENTS")
     if weighting not in ("body", "channel"):
         raise ValueError(
             f"ImplicitModel.build: weighting must be 'body' or 'channel', got {weighting!r}"
@@ -142,6 +141,13 @@ def learn(
             raise ValueError("ImplicitModel.build: give n_components or min_explained, not both")
 
     psis = [pose_vectors(fm, m) for m in motions]
+    n_windows = sum(max(len(psi) - d, 0) for psi in psis)
+    width = d * (psis[0].shape[1] if psis else 0)
+    check_size(
+        8 * n_windows * width,
+        "ImplicitModel.build: bytes of the window database",
+        "MAX_MODEL_BYTES",
+    )
     allpsi = np.concatenate(psis, axis=0)
     if not np.all(np.isfinite(allpsi)):
         raise ValueError("ImplicitModel.build: non-finite pose vectors")

@@ -49,7 +49,7 @@ So β = 1 means "as wide as the database" for both; β → 0 concentrates both o
 β → ∞ makes both uniform (the tree walk then takes each non-empty branch with probability ½).
 The two kernels are not identical (the exact one is isotropic in ``Γ``-scaled window space, the
 tree's is measured in units of each principal component's spread), so at equal β the tree is
-broader than the exact sampler; ``benchmarks/results/implicit.md`` reports the measured ratio.
+broader than the exact sampler (design §7.3–§7.4).
 
 Structure
 ---------

@@ -49,6 +49,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
+from ..core import check_count
 from ..motion import FeatureMap
 from ._database import MotionDatabase
 from ._feet import lock_root, root_channels
@@ -60,20 +61,21 @@ SynthLeafRule = Literal["uniform", "weighted", "exact"]
 _LEAVES = ("uniform", "weighted", "exact")
 
 
-def _check_int(value: object, name: str, low: int) -> int:
+def _check_int(value: object, name: str, low: int, high: str = "MAX_GENERATED_FRAMES") -> int:
+    """``value`` if it is an integer in ``[low, limit(high)]`` (a limit of
+    :mod:`mtex_jax.core`), else ``ValueError`` naming ``SynthesisConfig.name``."""
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
         raise ValueError(f"SynthesisConfig.{name} must be an integer ≥ {low}, got {value!r}")
-    return int(value)
+    return check_count(value, f"SynthesisConfig.{name}", high, low=low)
 
 
 class SynthesisConfig(eqx.Module):
     """How :meth:`ImplicitModel.synthesize` turns sampled examples into motion (all static).
 
-    The defaults were chosen on validation splits of the training clips only
-    (``benchmarks/implicit_quality.py --validate``; ``blend``, ``hubness``, ``root_blend``,
-    ``foot_lock``, ``lock_smoothing`` and ``seam_smoothing`` by the worst case over three
-    folds); :meth:`paper`
-    gives the published sampler (IP §5).
+    The defaults were chosen on validation splits of the training clips only (``blend``,
+    ``hubness``, ``root_blend``, ``foot_lock``, ``lock_smoothing`` and ``seam_smoothing`` by
+    the worst case over three folds; design §7.5); :meth:`paper` gives the published sampler
+    (IP §5).
 
     Attributes:
         velocity: apply the chosen example's change of pose to the current pose (``True``)
@@ -104,30 +106,21 @@ class SynthesisConfig(eqx.Module):
             displacement and yaw change, :func:`velocity_channels`) fades,
             ``w_r(a) = 1 − S(min(a / (B_r + 1), 1))``; ``0``: the root takes the example's
             velocity at once; ``-1``: the same as ``blend``. Used only when ``blend > 0``.
-            The default ``1`` (validation folds: speed distance 1.04–1.34× the floor against
-            1.33–1.43× with ``-1``) keeps the root's velocity consistent with the example's
-            limbs, so planted feet slide less during a transition; the root's quicker change
-            of velocity costs acceleration and jerk (held-out clips: speed 1.95× against
-            2.05×, jerk 2.55× against 1.96×; ``benchmarks/results/implicit_quality.md``).
+            The default ``1`` keeps the root's velocity consistent with the example's limbs,
+            so planted feet slide less during a transition; the root's quicker change of
+            velocity costs some acceleration and jerk.
         foot_lock: strength in ``[0, 1]`` of the foot lock (:mod:`~mtex_jax.implicit._feet`):
             the root's horizontal displacement is corrected so that planted feet move as in
-            the example (``0``: off, the paper). On the three validation folds (64
-            syntheses of 20 s each) it lowers the median skating speed of low feet from 0.29
-            to 0.25 m/s (real clips: about 0.15) and the worst fold's speed distance from
-            1.39 to 1.30× the floor, and raises the mean acceleration and jerk distances
-            from 1.04 and 1.15 to 1.09 and 1.22×.
+            the example (``0``: off, the paper). It lowers foot skating and the speed
+            distance, and raises acceleration and jerk a little (design §7.5).
         lock_smoothing: ``λ ∈ [0, 1)``: the foot lock's correction is smoothed over frames,
-            ``δ̄_t = λ δ̄_{t−1} + (1 − λ) δ_t``. Without seam smoothing 0.7 was best among
-            0.5, 0.7 and 0.85 (a quicker correction shook the body); with it, 0.5 among 0.3,
-            0.5 and 0.7 (lower skating, 0.23 against 0.24 m/s on the validation folds).
+            ``δ̄_t = λ δ̄_{t−1} + (1 − λ) δ_t`` (a quicker correction shakes the body). The
+            default 0.5 was chosen with seam smoothing on, on the validation folds.
         seam_smoothing: ``S``: the output frames within ``S − 1`` frames of a transition are
             blended with their ``[1, 2, 1] / 4`` average, fully at the transition and less
             with distance (:mod:`~mtex_jax.implicit._seams`; ``0``: off, the paper). It
-            removes the jerk spike of the velocity step at each transition. On the three
-            validation folds (128 syntheses of 20 s each), ``S = 2`` with ``λ = 0.5`` takes
-            the worst fold's acceleration and jerk distances from 1.46 and 1.60 to 1.26 and
-            1.25× the floor (``S = 0``, ``λ = 0.7``), with the same worst speed distance
-            (1.38×); ``S = 3`` smooths more (jerk 1.08×) but slows the motion (1.41×).
+            removes the jerk spike of the velocity step at each transition. ``S = 2`` was
+            chosen on the validation folds; ``S = 3`` smooths more but slows the motion.
     """
 
     velocity: bool = eqx.field(static=True, default=True)
@@ -151,7 +144,7 @@ class SynthesisConfig(eqx.Module):
         _check_int(self.lookahead, "lookahead", 0)
         _check_int(self.continuation, "continuation", 1)
         _check_int(self.max_run, "max_run", 0)
-        _check_int(self.candidates, "candidates", 1)
+        _check_int(self.candidates, "candidates", 1, "MAX_CANDIDATES")
         _check_int(self.leaf_cap, "leaf_cap", 0)
         _check_int(self.root_blend, "root_blend", -1)
         _check_int(self.seam_smoothing, "seam_smoothing", 0)

@@ -156,9 +156,12 @@ def synthesize(
         noise: innovation scale ``≥ 0``.
         sampler: ``"tree"`` (IP Eq. 7–8) or ``"exact"`` (IP Eq. 3).
         config: synthesis options (default ``SynthesisConfig()``).
-        leaf, candidates: override ``config.leaf`` / ``config.candidates``.
-        start_position, start_heading: root position and yaw of the first output frame
-            (default: from ``start_window`` if it is a clip, else the origin and 0).
+        leaf: overrides ``config.leaf``.
+        candidates: overrides ``config.candidates``.
+        start_position: root position of the first output frame (default: from
+            ``start_window`` if it is a clip, else the origin).
+        start_heading: root yaw of the first output frame (default: from ``start_window``
+            if it is a clip, else 0).
 
     Returns:
         a clip of ``d + n_frames`` frames: the seed poses followed by the generated ones.

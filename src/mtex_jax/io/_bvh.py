@@ -4,24 +4,30 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
 import warnings
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..core import MAX_ABS_VALUE, MAX_FRAMES, atomic_write, check_frame_time
+from ..core import MAX_ABS_VALUE, MAX_FRAMES, atomic_write, check_frame_time, read_input
 from ..motion import Motion, Skeleton
-from ._bvh_hierarchy import Tokens, parse_hierarchy
+from ._bvh_hierarchy import NUMBER, Tokens, parse_hierarchy
 
 __all__ = ["euler_to_quat", "parse_bvh", "quat_to_euler", "read_bvh", "write_bvh"]
 
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
+# a character that no decimal number of a frame line holds (Python's float() also reads
+# "1_0", "inf", "nan" and "infinity"; a BVH number is digits, sign, point and exponent only)
+_NOT_NUMERIC = re.compile(r"[^0-9eE+\-.\s]")
+_NON_FINITE = ("nan", "inf", "infinity")
 
 
 def parse_bvh(text: str, source: str = "<string>", *, max_frames: int = MAX_FRAMES) -> Motion:
-    """Parse BVH text into a :class:`Motion` (see :func:`read_bvh`)."""
-    lines = text.splitlines()
+    """Parse BVH text into a :class:`Motion` (see :func:`read_bvh`); a leading UTF-8
+    byte-order mark is skipped."""
+    lines = text.removeprefix("\ufeff").splitlines()
     motion_line = next((i for i, ln in enumerate(lines) if ln.strip().upper() == "MOTION"), None)
     if motion_line is None:
         raise ValueError(f"{source}:{len(lines)}: no MOTION section (file truncated?)")
@@ -49,6 +55,16 @@ def parse_bvh(text: str, source: str = "<string>", *, max_frames: int = MAX_FRAM
             f"{source}:{i + n_frames + tail[0] + 1}: more frame lines than 'Frames: {n_frames}'"
         )
     nc = skeleton.n_channels
+    for k, ln in enumerate(data):
+        bad = _NOT_NUMERIC.search(ln)
+        if bad is not None:
+            tok = next(t for t in ln.split() if bad.group() in t)
+            what = (
+                "non-finite value"
+                if tok.lower().lstrip("+-") in _NON_FINITE
+                else "non-numeric token"
+            )
+            raise ValueError(f"{source}:{i + k + 1}: {what} {tok!r} in frame {k}")
     toks_per_line = [ln.split() for ln in data]
     for k, tl in enumerate(toks_per_line):
         if len(tl) != nc:
@@ -66,9 +82,7 @@ def parse_bvh(text: str, source: str = "<string>", *, max_frames: int = MAX_FRAM
     except ValueError:
         for k, tl in enumerate(toks_per_line):
             for t in tl:
-                try:
-                    float(t)
-                except ValueError:
+                if not NUMBER.fullmatch(t):
                     raise ValueError(
                         f"{source}:{i + k + 1}: non-numeric token {t!r} in frame {k}"
                     ) from None
@@ -101,6 +115,8 @@ def _header_value(
         raise ValueError(f"{source}:{i + 1}: expected {key!r}, found {ln[:40]!r}")
     rest = ln[len(key) :].strip()
     try:
+        if not NUMBER.fullmatch(rest):
+            raise ValueError
         v = float(rest)
         if not np.isfinite(v) or (integer and v != int(v)):
             raise ValueError
@@ -242,16 +258,15 @@ def read_bvh(path: str | os.PathLike[str], *, max_frames: int = MAX_FRAMES) -> M
     Raises:
         ValueError: on malformed input, naming the file and line (truncated file, wrong number
             of values on a frame line, non-numeric or non-finite token, unknown keyword or
-            channel, zero frames, invalid frame time) and on input beyond the limits of
-            :mod:`mtex_jax.core` (more than ``max_frames`` frames or ``MAX_JOINTS`` joints,
+            channel, zero frames, invalid frame time; numbers are strict decimals: ``1_0``,
+            ``inf`` and ``nan`` are refused) and on input beyond the limits of
+            :mod:`mtex_jax.core` (a file larger than ``MAX_INPUT_BYTES`` or not a regular file,
+            more than ``max_frames`` frames or ``MAX_JOINTS`` joints,
             joints nested deeper than ``MAX_DEPTH``, a frame time outside
             ``[MIN_FRAME_TIME, MAX_FRAME_TIME]``, a number beyond ``MAX_ABS_VALUE``).
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8", errors="replace")
-    except OSError as e:
-        raise ValueError(f"{p}: cannot read BVH file: {e.strerror or e}") from None
+    text = read_input(p, "BVH file").decode("utf-8", errors="replace")
     return parse_bvh(text, str(p), max_frames=max_frames)
 
 

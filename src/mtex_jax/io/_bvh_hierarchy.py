@@ -3,6 +3,7 @@ file gets a clear error instead of a ``RecursionError``), within the joint and d
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 
 import numpy as np
@@ -10,7 +11,11 @@ import numpy as np
 from ..core import MAX_ABS_VALUE, MAX_DEPTH, MAX_JOINTS
 from ..motion import POSITION_CHANNELS, ROTATION_CHANNELS, Skeleton
 
-__all__ = ["Tokens", "parse_hierarchy"]
+__all__ = ["NUMBER", "Tokens", "parse_hierarchy"]
+
+#: A strict decimal number of a BVH file (no ``1_0``, ``inf`` or ``nan``, which ``float``
+#: accepts).
+NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 
 _CHANNEL_CANON = {c.lower(): c for c in ROTATION_CHANNELS + POSITION_CHANNELS}
 
@@ -49,6 +54,8 @@ class Tokens:
         tok, line = self.next(what)
         try:
             v = float(tok)
+            if np.isfinite(v) and not NUMBER.fullmatch(tok):
+                raise ValueError
         except ValueError:
             raise self.error(line, f"non-numeric token {tok!r} where {what} was expected") from None
         if not np.isfinite(v):

@@ -8,7 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core import MAX_ABS_VALUE, MAX_FRAME_TIME, MAX_FRAMES, check_frame_time, check_json_depth
+from ..core import (
+    MAX_ABS_VALUE,
+    MAX_FRAME_TIME,
+    MAX_FRAMES,
+    check_frame_time,
+    check_json_depth,
+    read_input,
+)
 from ..motion import Motion, Skeleton, slerp
 
 __all__ = ["HUMANOID3D", "parse_deepmimic", "read_deepmimic"]
@@ -127,7 +134,9 @@ def _frame_lines(text: str) -> list[int]:
 
 
 def parse_deepmimic(text: str, source: str = "<string>", *, max_frames: int = MAX_FRAMES) -> Motion:
-    """Parse DeepMimic JSON motion text (see :func:`read_deepmimic`)."""
+    """Parse DeepMimic JSON motion text (see :func:`read_deepmimic`); a leading UTF-8
+    byte-order mark is skipped."""
+    text = text.removeprefix("\ufeff")
     check_json_depth(text, source)  # json.loads recurses: refuse deep nesting first
     try:
         doc = json.loads(text)
@@ -135,6 +144,8 @@ def parse_deepmimic(text: str, source: str = "<string>", *, max_frames: int = MA
         raise ValueError(
             f"{source}:{e.lineno}: invalid JSON: {e.msg} at column {e.colno} (truncated file?)"
         ) from None
+    except (ValueError, RecursionError) as e:  # e.g. an integer of more than 4300 digits
+        raise ValueError(f"{source}: invalid number in JSON: {str(e)[:120]}") from None
     if not isinstance(doc, dict) or "Frames" not in doc:
         raise ValueError(f"{source}:1: not a DeepMimic motion (no 'Frames' list)")
     frames = doc["Frames"]
@@ -262,14 +273,15 @@ def read_deepmimic(path: str | os.PathLike[str], *, max_frames: int = MAX_FRAMES
     Raises:
         ValueError: naming the file and line for invalid JSON, a frame of the wrong length, a
             non-numeric or non-finite value, zero frames, or an inconsistent frame duration;
-            and on input beyond the limits of :mod:`mtex_jax.core`: JSON nested deeper than
+            and on input beyond the limits of :mod:`mtex_jax.core`: a file larger than
+            ``MAX_INPUT_BYTES`` or not a regular file, JSON nested deeper than
             ``MAX_DEPTH`` (refused before parsing, without recursion), more than
             ``max_frames`` frames after resampling (a keyframe lasting 1e6 s), a frame time
             outside ``[MIN_FRAME_TIME, MAX_FRAME_TIME]``, a number beyond ``MAX_ABS_VALUE``.
     """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
+        text = read_input(p, "DeepMimic file").decode("utf-8")
+    except UnicodeDecodeError as e:
         raise ValueError(f"{p}: cannot read DeepMimic file: {e}") from None
     return parse_deepmimic(text, str(p), max_frames=max_frames)

@@ -3,9 +3,9 @@
 The clips live in ``mtex_jax/data/salsa/``: ``salsa.npz`` holds every clip's root positions and
 joint rotations (unit quaternions), each channel quantised to 16 bits between its per-clip
 minimum and maximum; ``salsa.json`` holds the skeleton, the clip names and frame counts, the
-fixed quality split and the SHA-256 of the ``.npz``. They are made from the BVH files by
-``benchmarks/make_salsa_data.py``; every clip equals the BVH resampled to 60 Hz within 0.003°
-of joint rotation and 0.05 mm of world joint position.
+fixed quality split and the SHA-256 of the ``.npz``. They are made from the BVH files by the
+repository's package-data builder (``make_salsa_data.py``); every clip equals the BVH
+resampled to 60 Hz within 0.003° of joint rotation and 0.05 mm of world joint position.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ and solved by block forward and backward substitution (``O(n·b²·m)`` for ``m`
 
     z_I = L_I⁻¹ (r_I − M_{I−1} z_{I−1}),        x_I = L_I⁻ᵀ (z_I − M_Iᵀ x_{I+1}).
 
-Performance design (CPU; measured in ``benchmarks/bench_synthesis.py``). The recursion is
+Performance design (CPU; design §5.4–§5.5). The recursion is
 sequential and its ``30 × 30`` kernels are small, so a step costs a few microseconds of which
 most is the per-call cost of small LAPACK kernels (Cholesky, triangular solve) and of the small
 matrix products; what matters is the number of kernel calls per step:

@@ -1,6 +1,6 @@
 """One quality report: held-out density and prediction of a motion texture beside the
 baselines, and the motion metrics of generated clips beside the real-vs-real floor (design
-§10.4). Used by ``mtex evaluate`` and ``benchmarks/bench_quality.py``.
+§10.4). Used by ``mtex evaluate``, ``mtex demo`` and the quality benchmark.
 
 Conventions:
 
@@ -78,9 +78,11 @@ class MotionJudge:
         Args:
             generated: the clips judged.
             boundaries: per clip, the frames where a new texton starts (for transition jumps).
-            indices, successor, index_fps: the database example chosen at every step and the
-                successor array of the database, when the generator knows them (the implicit
-                model); then copying is counted from them instead of nearest neighbours.
+            indices: the database example chosen at every step, when the generator knows it
+                (the implicit model); then copying is counted from it instead of nearest
+                neighbours.
+            successor: the successor array of that database (with ``indices``).
+            index_fps: the frame rate of ``indices`` (with ``indices``).
             copy: measure nearest-neighbour copying (the slowest metric).
         """
         gen = as_motion_list(generated, "judge (generated)")

@@ -23,6 +23,7 @@ others are z-scored. ``decode ∘ encode`` is the identity up to float error.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from typing import Any
@@ -31,6 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float
 
 from ..core import load_arrays_json, save_arrays_json
@@ -187,6 +189,10 @@ class FeatureMap(eqx.Module):
                 )
         if any(not 0 <= a < r for a in self.active) or len(set(self.active)) != len(self.active):
             raise ValueError("FeatureMap.active must be distinct channel indices")
+        fps = self.fps
+        ok = isinstance(fps, int | float) and not isinstance(fps, bool)
+        if not (ok and math.isfinite(fps) and 0 < fps <= 10_000):
+            raise ValueError(f"FeatureMap.fps must be in (0, 10000] frames per second, got {fps!r}")
 
     @property
     def dim(self) -> int:
@@ -268,7 +274,13 @@ class FeatureMap(eqx.Module):
 
     # ------------------------------------------------------------------ encode / decode
     def encode(self, motion: Motion) -> Float[Array, "T D"]:
-        """Observation vectors ``Y (T, D)`` of a clip (z-scored active channels)."""
+        """Observation vectors ``Y (T, D)`` of a clip (z-scored active channels); a clip at
+        another frame rate is resampled to the map's first (so every function that takes
+        motions accepts a 120 Hz clip for a 30 Hz model); a traced one must have its rate."""
+        arrays = (getattr(motion, "rotations", None), getattr(motion, "root_positions", None))
+        traced = any(isinstance(a, Tracer) for a in arrays)
+        if isinstance(motion, Motion) and motion.fps != self.fps and not traced:
+            motion = motion.resample(self.fps)
         self._check_motion(motion)
         return _scale(self, _raw(motion))
 

@@ -49,6 +49,16 @@ class Motion(eqx.Module):
     local_positions: ArrayF | None = None
 
     def __post_init__(self) -> None:
+        # integer or boolean arrays (a list of ints, np.int64) become float64: an integer
+        # quaternion would otherwise skip the unit check and round in every product
+        for name in ("root_positions", "rotations", "local_positions"):
+            a = getattr(self, name)
+            if a is None or isinstance(a, Tracer):
+                continue
+            if not hasattr(a, "dtype") or np.asarray(a).dtype.kind in "biu":
+                arr = np.asarray(a)
+                if arr.dtype.kind in "biuf":
+                    setattr(self, name, arr.astype(np.float64))
         # normalise near-unit quaternions (the rest is checked by __check_init__)
         q, n = self._quaternion_norms()
         if q is None or n is None or not np.isfinite(n).all():
@@ -112,6 +122,21 @@ class Motion(eqx.Module):
                     f"Motion.local_positions must have shape ({rs[0]}, {j}, 3), got {ls}"
                 )
         self._check_quaternions()
+        self._check_finite_positions()
+
+    def _check_finite_positions(self) -> None:
+        """Root and local positions finite (traced arrays skipped): a NaN root position would
+        make every joint position NaN."""
+        for name in ("root_positions", "local_positions"):
+            a = getattr(self, name)
+            if a is None or isinstance(a, Tracer):
+                continue
+            arr = np.asarray(a)
+            if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+                t = int(np.nonzero(~np.isfinite(arr.reshape(arr.shape[0], -1)).all(axis=1))[0][0])
+                raise ValueError(f"Motion.{name}: frame {t} holds NaN or inf")
+            if arr.dtype.kind not in "f":
+                raise TypeError(f"Motion.{name} must be a float array, got dtype {arr.dtype}")
 
     # ------------------------------------------------------------------ basic facts
     @property
@@ -139,6 +164,10 @@ class Motion(eqx.Module):
         else:
             fps = self.fps
         idx = frames if isinstance(frames, slice) else np.asarray(frames)
+        if isinstance(idx, np.ndarray) and idx.dtype.kind in "iu" and idx.size:
+            n = self.n_frames
+            if idx.min() < -n or idx.max() >= n:
+                raise IndexError(f"frame index out of range for a motion of {n} frames")
         lp = None if self.local_positions is None else self.local_positions[idx]
         return Motion(self.skeleton, fps, self.root_positions[idx], self.rotations[idx], lp)
 
@@ -201,7 +230,8 @@ def slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Spherical linear interpolation of unit quaternions (NumPy, float64).
 
     Args:
-        q0, q1: ``(..., 4)`` unit quaternions.
+        q0: ``(..., 4)`` unit quaternions at ``u = 0``.
+        q1: ``(..., 4)`` unit quaternions at ``u = 1``.
         u: interpolation fractions in ``[0, 1]``, broadcastable to ``q0.shape[:-1]``.
 
     Returns:

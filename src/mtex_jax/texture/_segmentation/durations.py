@@ -46,7 +46,8 @@ def fit_durations(
         lengths: ``(n_seg,)`` segment lengths, each in ``[tmin, tmax]``.
         labels: ``(n_seg,)`` texton of each segment, in ``[0, n_textons)``.
         n_textons: ``N_t``.
-        tmin, tmax: the length bounds.
+        tmin: the shortest segment length.
+        tmax: the longest segment length.
 
     Returns:
         ``log_durations (N_t, tmax − tmin + 1)``, each row a normalised log-distribution.

@@ -67,7 +67,8 @@ def forward_log_likelihood(
         log_M: ``(N_t, N_t)`` log transition matrix, ``log_M[l, i] = log P(i | l)``.
         log_pi: ``(N_t,)`` log initial distribution.
         n_valid: number of real frames ``T_s ≤ T`` (the rest is padding and ignored).
-        tmin, tmax: segment length bounds (static), ``3 ≤ tmin ≤ tmax``.
+        tmin: shortest segment length (static), ``3 ≤ tmin ≤ tmax``.
+        tmax: longest segment length (static).
         log_durations: ``(N_t, tmax − tmin + 1)`` log-probability of each segment length
             ``L = tmin … tmax`` per texton; ``None`` for flat durations (the paper's).
 

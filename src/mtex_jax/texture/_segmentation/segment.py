@@ -181,7 +181,8 @@ def viterbi_segments(
         log_M: ``(N_t, N_t)`` log transition matrix, ``log_M[l, i] = log P(i | l)``.
         log_pi: ``(N_t,)`` log initial distribution.
         n_valid: number of real frames ``T_s ≤ T`` (the rest is padding and ignored).
-        tmin, tmax: segment length bounds (static), ``3 ≤ tmin ≤ tmax``.
+        tmin: shortest segment length (static), ``3 ≤ tmin ≤ tmax``.
+        tmax: longest segment length (static).
         log_durations: ``(N_t, tmax − tmin + 1)`` log-probabilities of the lengths
             ``tmin … tmax`` per texton, or ``None`` (flat: the paper).
 

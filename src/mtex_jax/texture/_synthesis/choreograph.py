@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ...core import check_key
+from ...core import check_key, limit
 from .._model import MotionTexture
 from .._scoring.frame_terms import frame_terms
 from .._scoring.frame_terms_ref import init_terms
@@ -73,12 +73,14 @@ def choreograph(
     The start pair is matched to texton ``u`` as the first frames of a segment and the end
     pair to texton ``v`` as the last frames of one (:func:`match_texton`). The path from ``u``
     to ``v`` is planned with :func:`path_of_length` when ``n_frames`` is given (``L ≈
-    n_frames / mean segment length`` textons) or with :func:`shortest_path` (plus sampled
-    self-repeats) otherwise. Key poses are chosen for the textons in between as in
-    :func:`synthesize`; the first texton starts at ``start_pose`` and the last one (``v``)
-    is held at ``end_pose`` in its final two frames, so the motion begins and ends at the
-    given poses (each reprojected into its texton's subspace, ``μ + C Cᵀ(y − μ)``). With
-    ``n_frames`` the segment lengths are rescaled to fit exactly.
+    n_frames / mean segment length`` textons) or, by default, with :func:`shortest_path`
+    without self-repeats: the most probable texton path, each texton as long as its key
+    poses' training segment (sampled self-repeats made the default motion of a 53-texton
+    model 142 s long; ask for more frames with ``n_frames``). Key poses are chosen for the
+    textons in between as in :func:`synthesize`; the first texton starts at ``start_pose`` and
+    the last one (``v``) is held at ``end_pose`` in its final two frames, so the motion begins
+    and ends at the given poses (each reprojected into its texton's subspace,
+    ``μ + C Cᵀ(y − μ)``). With ``n_frames`` the segment lengths are rescaled to fit exactly.
 
     Args:
         texture: a learned :class:`~mtex_jax.texture.MotionTexture`.
@@ -103,16 +105,17 @@ def choreograph(
     e_np = check_pair("end_pose", end_pose, D)
     u, _ = match_texton(texture, s_np, role="start")
     v, _ = match_texton(texture, e_np, role="end")
-    k_path, k_inst, k_noise = jax.random.split(key, 3) if key is not None else (None,) * 3
+    _, k_inst, k_noise = jax.random.split(key, 3) if key is not None else (None,) * 3
     seg_len = np.asarray(texture.segment_lengths, dtype=np.float64)
     if n_frames is not None:
         n_frames = check_n_frames(n_frames)
         L = max(1, min(round(int(n_frames) / seg_len.mean()), (int(n_frames) - 2) // 2))
+        L = min(L, int(limit("MAX_PATH_TEXTONS")))
         if u != v and L == 1:
             L = 2
         body, _ = path_of_length(texture, u, v, L)
     else:
-        body = shortest_path(texture, u, v, key=k_path)
+        body = shortest_path(texture, u, v, key=None)
     seg_idx = key_pose_instances(texture, k_inst, body)
     lens = seg_len[seg_idx].astype(np.int64)
     mins = np.full(body.size, 2)

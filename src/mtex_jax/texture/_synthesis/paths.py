@@ -30,7 +30,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
-from ...core import MAX_GENERATED_FRAMES, check_count, check_key
+from ...core import MAX_GENERATED_FRAMES, check_count, check_key, check_size
 from .._model import MotionTexture
 
 __all__ = ["path_cost", "path_of_length", "random_path", "shortest_path"]
@@ -260,7 +260,9 @@ def path_of_length(texture: MotionTexture, u: int, v: int, L: int) -> tuple[np.n
         ``(labels (L,) int64, log_probability)``.
 
     Raises:
-        ValueError: no path of that length exists, or bad arguments.
+        ValueError: no path of that length exists, or bad arguments (``L`` more than the limit
+            ``MAX_PATH_TEXTONS`` of :mod:`mtex_jax.core`, or ``L·N_t`` more than
+            ``MAX_GENERATED_FRAMES``).
     """
     M = _transition_matrix(texture)
     n = M.shape[0]
@@ -269,6 +271,8 @@ def path_of_length(texture: MotionTexture, u: int, v: int, L: int) -> tuple[np.n
         raise TypeError(f"L must be an int, got {L!r}")
     if L < 1:
         raise ValueError(f"L must be >= 1, got {L}")
+    check_size(L, "path_of_length: L", "MAX_PATH_TEXTONS")
+    check_size(L * n, "path_of_length: L × N_t back-pointers", "MAX_GENERATED_FRAMES")
     if L == 1:
         if u != v:
             raise ValueError(f"a path of 1 texton cannot go from {u} to {v}")

@@ -231,7 +231,8 @@ def refine_texton(
         Y: ``(T, D)`` or ``(S, T, D)`` observations.
         mask: segment ids (``-1`` = unused), as for :func:`mtex_jax.texture.fit_texton`.
         max_steps: maximum BFGS iterations (static).
-        rtol, atol: BFGS tolerances.
+        rtol: BFGS relative tolerance.
+        atol: BFGS absolute tolerance.
 
     Returns:
         ``(refined texton, RefineReport)``. The refined texton's exact log-likelihood is never

@@ -37,8 +37,9 @@ def sample_texton(
         texton: a single texton.
         key: a JAX PRNG key.
         length: number of frames ``L >= 2`` (static).
-        x1, x2: ``(k,)`` first two states (e.g. key poses reprojected, ``Cᵀ(y − μ)``). If both
-            are ``None`` they are drawn from ``N(m0, S0)``; give both or neither.
+        x1: ``(k,)`` first state (e.g. a key pose reprojected, ``Cᵀ(y − μ)``). If ``x1``
+            and ``x2`` are ``None`` both are drawn from ``N(m0, S0)``; give both or neither.
+        x2: ``(k,)`` second state, as ``x1``.
         observation_noise: add ``w_t ~ N(0, σ² I_D)`` to the observations. MT Fig. 4 shows
             the noise-free projection ``μ + C x_t``; ``True`` samples the full generative model.
 

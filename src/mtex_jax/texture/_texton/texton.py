@@ -215,13 +215,40 @@ class Texton(eqx.Module):
         return self.B @ jnp.swapaxes(self.B, -1, -2)
 
     def __getitem__(self, index: Any) -> Texton:
-        """Index/slice a stack of textons along the leading texton axis."""
+        """Index/slice a stack of textons along the leading texton axis.
+
+        An integer (or a concrete array of integers) outside ``[-N_t, N_t)`` is an
+        ``IndexError``, as for a list (JAX would clamp it to the last texton); a traced index
+        (under ``jit``) cannot be checked and is clamped.
+        """
         if not self.is_stacked:
             raise TypeError("a single (unstacked) Texton cannot be indexed")
+        check_index(index, self.n_textons, "texton")
         return jax.tree.map(lambda x: x[index], self)
 
 
 TEXTON_FIELDS = ("mu", "C", "A1", "A2", "d", "B", "sigma2", "m0", "S0", "res_a", "res_s2")
+
+
+def check_index(index: Any, n: int, what: str) -> None:
+    """``IndexError`` if a concrete integer ``index`` (or array of them) lies outside
+    ``[-n, n)``; slices, booleans masks of length ``n`` and traced indices pass unchecked."""
+    if isinstance(index, slice | Tracer) or index is None or index is Ellipsis:
+        return
+    if isinstance(index, tuple):
+        if index:
+            check_index(index[0], n, what)
+        return
+    a = np.asarray(index)
+    if a.dtype == bool:
+        if a.shape[:1] != (n,):
+            raise IndexError(f"a boolean {what} mask must have length {n}, got shape {a.shape}")
+        return
+    if a.dtype.kind not in "iu":
+        raise IndexError(f"{what} index must be an integer or a slice, got {index!r}")
+    if a.size and (a.min() < -n or a.max() >= n):
+        bad = int(a.max()) if a.max() >= n else int(a.min())
+        raise IndexError(f"{what} index {bad} is out of range for {n} {what}s")
 
 
 def stack_textons(textons: Sequence[Texton]) -> Texton:
