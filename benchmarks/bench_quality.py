@@ -109,6 +109,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "quality.md")
     ap.add_argument("--syntheses", type=int, default=8, help="generated clips per generator")
     ap.add_argument("--arhmm-iters", type=int, default=20)
+    ap.add_argument("--moseq-iters", type=int, default=30, help="Gibbs sweeps of jax-moseq")
     args = ap.parse_args()
     n_syn = 2 if args.quick else args.syntheses
     t_start = time.perf_counter()
@@ -161,6 +162,17 @@ def main() -> None:
         ),
     )
     log(f"  {tex.n_textons} textons from {lab.size} segments in {t_learn:.1f} s")
+    voc = tex.summary()
+    seg_counts = np.asarray(voc.segments)
+    res["vocabulary"] = dict(
+        textons=voc.n_textons,
+        largest_share=voc.largest_share,
+        segments_min=int(seg_counts.min()),
+        segments_median=float(np.median(seg_counts)),
+        median_successors=voc.median_successors,
+        mean_segment_frames=float(np.asarray(tex.segment_lengths).mean()),
+        per_texton=voc.rows(),
+    )
     # every texton run by its dynamics with sampled noise for 10,000 frames from its own key
     # poses: finite, and how far beyond the training range (max |y| over the training max)
     kp, span = np.asarray(tex.key_poses), float(np.abs(np.asarray(tex.key_poses)).max())
@@ -190,6 +202,26 @@ def main() -> None:
         for name, r in metrics.density_report(v, train, held).items():
             if name == "motion texture (marginal)":
                 dens[f"motion texture, {tag}, {v.n_textons} textons (marginal)"] = r
+    # the simplest model of the same family (one texton) and the untied default of before
+    # (full-dimensional untied textons, greedy initialisation, BIC): both must be beaten
+    others = {
+        "same family, one texton": dataclasses.replace(cfg, n_textons=1, selection="none"),
+        "untied full textons (greedy init, BIC)": dataclasses.replace(
+            cfg, observation="residual", init="greedy", selection="bic"
+        ),
+    }
+    res["per_clip_others"] = {}
+    for tag, c in others.items():
+        log(f"the texture, {tag}, on the same split")
+        t_o, other = timed(lambda c=c: mj.learn(train, c))
+        res.setdefault("variants", {})[tag] = dict(learn_s=t_o, textons=other.n_textons)
+        for name, r in metrics.density_report(other, train, held).items():
+            if name == "motion texture (marginal)":
+                dens[f"motion texture, {tag}, {other.n_textons} texton(s) (marginal)"] = r
+        assert other.feature_map is not None
+        res["per_clip_others"][tag] = [
+            other.log_likelihood(np.asarray(other.feature_map.encode(m))) / m.n_frames for m in held
+        ]
     log("the paper's model (the previous README settings) on the same split")
     paper = mj.learn(train, PAPER_CFG if not it else dataclasses.replace(PAPER_CFG, **it))
     for name, r in metrics.density_report(paper, train, held).items():
@@ -240,6 +272,27 @@ def main() -> None:
         res["arhmm"] = dict(iterations=iters, train_loglik_per_frame=train_ll)
     except ImportError as e:
         log(f"  dynamax not installed ({e}); pip install dynamax")
+    log("jax-moseq's AR-HMM (sticky HDP prior, Gibbs), if it installs")
+    try:
+        from quality_moseq import moseq_row
+
+        res["moseq"] = moseq_row(
+            train_y, held_y, iters=3 if args.quick else args.moseq_iters, seed=0
+        )
+    except ImportError as e:
+        res["moseq"] = dict(reason=f"benchmarks/quality_moseq.py cannot be imported: {e}")
+    if "reason" not in res["moseq"]:
+        m = res["moseq"]
+        name = (
+            f"jax-moseq AR-HMM ({m['states_used_1pct']} of {m['max_states']} states ≥ 1 %, 2 lags)"
+        )
+        dens[name] = dict(
+            loglik_per_frame=m["held_loglik_per_frame"],
+            prediction_mse=m["held_prediction_mse"],
+            median_frame=m["held_median_frame"],
+            worst_frame=m["held_worst_frame"],
+            frames=float(m["frames"]["held"]),
+        )
     res["density"] = dens
 
     log("forward algorithm against the Viterbi on the same scores (held-out clips joined)")

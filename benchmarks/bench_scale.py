@@ -1,7 +1,7 @@
 """Benchmark: learning at the paper's scale (issue 21).
 
-A full learn with the default settings (``LearnConfig(tmin=60, tmax=180, fps=60)``: BIC state
-dimension, greedy initialisation, EM to convergence, BIC texton selection) at about 7k, 14k,
+A full learn with the default settings (``LearnConfig(tmin=60, tmax=180, fps=60)``: tied
+textons, chunk initialisation, EM, the selection of the textons) at about 7k, 14k,
 28k and 50k frames of 60 Hz salsa, each in a fresh process (compilation included, no
 compilation cache), with
 

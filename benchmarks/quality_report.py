@@ -37,6 +37,34 @@ def _innovations_text(p: dict[str, Any] | None, bank: dict[str, Any] | None) -> 
     )
 
 
+def _vocabulary_lines(v: dict[str, Any] | None) -> list[str]:
+    """The vocabulary table (issue 39): textons, the largest one's share, segments per
+    texton, successors, mean segment length; then one row per texton."""
+    if v is None:
+        return []
+    L = [
+        "## Vocabulary (the texture's textons on the training clips)",
+        "",
+        "| textons | largest texton's share of segments | fewest segments | median segments "
+        "| median successors (M ≥ 0.1, not itself) | mean segment length (frames) |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: |",
+        f"| {v['textons']} | {100 * v['largest_share']:.0f} % | {v['segments_min']} "
+        f"| {v['segments_median']:g} | {v['median_successors']:g} "
+        f"| {v['mean_segment_frames']:.1f} |",
+        "",
+        "| texton | segments | share | mean length (s) | stays | successors (M ≥ 0.1) |",
+        "| ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
+    for r in v["per_texton"]:
+        succ = ", ".join(f"{j} ({p:.2f})" for j, p in r["successors"]) or "—"
+        sec = "—" if r["mean_seconds"] is None else f"{r['mean_seconds']:.2f}"
+        L.append(
+            f"| {r['texton']} | {r['segments']} | {100 * r['share']:.0f} % | {sec} "
+            f"| {r['self']:.2f} | {succ} |"
+        )
+    return [*L, ""]
+
+
 def write(res: dict[str, Any], out: Path, seed: int) -> None:
     """Write ``out`` (markdown) and ``out`` with suffix ``.json`` (atomically the former)."""
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -68,6 +96,7 @@ def write(res: dict[str, Any], out: Path, seed: int) -> None:
         "with the fitted innovation process."
         + _innovations_text(t.get("synthesis_innovations"), t.get("synthesis_residuals")),
         "",
+        *_vocabulary_lines(res.get("vocabulary")),
         "## Density and one-step prediction (held-out clips, texture's observation vectors)",
         "",
         "| model | log-likelihood / frame (nats) | median frame | worst frame "
@@ -92,9 +121,30 @@ def write(res: dict[str, Any], out: Path, seed: int) -> None:
         "| clip | frames | marginal / frame | best path / frame |",
         "| --- | ---: | ---: | ---: |",
     ]
-    for c in res["per_clip"]:
+    others = res.get("per_clip_others", {})
+    if others:
+        L[-2] = L[-2][:-1] + "".join(f" {tag} / frame |" for tag in others)
+        L[-1] = L[-1] + " ---: |" * len(others)
+    for j, c in enumerate(res["per_clip"]):
         n = c["frames"]
-        L.append(f"| {c['clip']} | {n} | {c['marginal'] / n:.2f} | {c['best_path'] / n:.2f} |")
+        extra = "".join(f" {v[j]:.2f} |" for v in others.values())
+        L.append(
+            f"| {c['clip']} | {n} | {c['marginal'] / n:.2f} | {c['best_path'] / n:.2f} |{extra}"
+        )
+    if "moseq" in res and "reason" in res["moseq"]:
+        L += ["", f"jax-moseq's AR-HMM: no row: {res['moseq']['reason']}"]
+    elif "moseq" in res:
+        m = res["moseq"]
+        L += [
+            "",
+            f"jax-moseq AR-HMM ({json.dumps(m.get('versions', {}))}): "
+            f"{m.get('iterations')} Gibbs sweeps, "
+            f"{m['states_used_1pct']} of {m['max_states']} states on at least 1 % of the "
+            f"training frames; training log-likelihood "
+            f"{_f(m.get('train_loglik_per_frame'), 2)} / frame; its held-out figure conditions "
+            "on the first two frames of each clip (keypoint-moseq's default priors, nothing "
+            "tuned).",
+        ]
     L += [
         "",
         f"Forward algorithm vs Viterbi on the same segment scores ({fc['frames']:,} frames, "

@@ -13,3 +13,8 @@ PAPER = {
     for k, v in dataclasses.asdict(LearnConfig.paper()).items()
     if k != "state_dim" and v != _DEFAULTS[k]
 }
+
+#: The untied residual textons with the paper's greedy initialisation (the defaults before the
+#: tied textons): tests of the subspace machinery that choose ``state_dim`` or a greedy
+#: ``threshold`` pin them with ``**UNTIED``.
+UNTIED = dict(observation="residual", init="greedy")

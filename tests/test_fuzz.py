@@ -31,6 +31,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 import mtex_jax as mj
 from mtex_jax.texture import MotionTexture, Texton
+from paper_settings import UNTIED
 
 DATA = Path(mj.__file__).resolve().parent / "data" / "deepmimic"
 COUNTS: dict[str, int] = {}
@@ -105,7 +106,7 @@ def texture_file(fm: mj.FeatureMap, path: Path) -> None:
         segments=jnp.asarray([[0, 0, 10, 0], [0, 10, 12, 1]]),
         history=jnp.zeros((1, 2)),
         feature_map=fm,
-        config=mj.LearnConfig(tmin=5, tmax=20, state_dim=k),
+        config=mj.LearnConfig(tmin=5, tmax=20, state_dim=k, **UNTIED),
         threshold=0.3,
     )
     tex.save(path)

@@ -81,6 +81,7 @@ def test_learn_synth_and_choreograph_on_the_embedded_clips(tmp_path):
     r = run_cli(
         *("learn", *clips, "-o", str(out / "texture.npz"), "--fps", "30", "--tmin", "0.6"),
         *("--tmax", "1.8", "--state-dim", "6", "--threshold", "0.3", "--max-iter", "10"),
+        *("--observation", "residual", "--init", "greedy"),
     )
     assert r.returncode == 0, r.stderr
     tex = mj.load_texture(out / "texture.npz")
@@ -147,6 +148,8 @@ def test_learn_and_segment_commands(tmp_path, cmu_files):
         "2",
         "--innovations",
         "residuals",
+        "--observation",
+        "residual",
     )
     assert r.returncode == 0, r.stderr[-2000:]
     assert "textons:" in r.stdout and "[mtex learn] iter" in r.stdout

@@ -19,7 +19,12 @@ def test_demo_pipeline_writes_every_file(tmp_path, capsys):
     text = capsys.readouterr().out
     for line in ("EM iteration  0", "segments per texton", "quality of the new salsa", "done in"):
         assert line in text, line
-    for step in ("learn (greedy init + EM)", "synthesise", "GIF beside a real clip"):
+    for step in (
+        "learn (EM + selection)",
+        "texton gallery",
+        "synthesise",
+        "GIF beside a real clip",
+    ):
         assert f"[{step}: " in text and step in text.split("time per step:")[1]
 
     tex = mj.load_texture(out / "texture.npz")
@@ -37,7 +42,7 @@ def test_demo_pipeline_writes_every_file(tmp_path, capsys):
     with Image.open(out / "new_dance.gif") as im:
         assert im.format == "GIF" and im.n_frames == 45  # 2.98 s at 15 frames per second
         assert im.size[0] == 2 * im.size[1]  # two square panels side by side
-    for png in ("timeline.png", "new_dance.png"):
+    for png in ("timeline.png", "new_dance.png", "textons.png"):
         with Image.open(out / png) as im:
             assert im.format == "PNG" and im.size[0] > 100
 
@@ -49,7 +54,14 @@ def test_demo_pipeline_writes_every_file(tmp_path, capsys):
             assert isinstance(report["motion"][row][key], float), (row, key)
     for key in ("boundary_share_above_p99", "novelty_median", "copy_fraction"):
         assert key in report["motion"]["synthesised"]
-    assert set(report["step_seconds"]) >= {"learn (greedy init + EM)", "quality report"}
+    assert set(report["step_seconds"]) >= {"learn (EM + selection)", "quality report"}
+
+    # the vocabulary of the demo's texture: printed, and drawn as a gallery of samples
+    assert main(["textons", str(out / "texture.npz"), "-o", str(tmp_path / "voc.png")]) == 0
+    text = capsys.readouterr().out
+    assert f"{tex.n_textons} textons; largest" in text and "successors" in text
+    with Image.open(tmp_path / "voc.png") as im:
+        assert im.format == "PNG"
 
 
 def test_demo_refuses_bad_options(capsys):
@@ -69,3 +81,26 @@ def test_gif_pair_same_scale_loops_the_shorter_clip(tmp_path):
         mj.viz.render_gif_pair(salsa, walk, tmp_path / "x.gif", fps=40)
     with pytest.raises(ValueError, match="unknown joint"):
         mj.viz.render_gif_pair(salsa, walk, tmp_path / "x.gif", trajectories=["lFoot"])
+
+
+def test_texton_gallery_shows_training_segments_or_samples(tmp_path):
+    """The gallery's instances are the texton's own training segments (the clips cut where the
+    segmentation says), or samples of its dynamics from its key poses without the clips."""
+    clips = [mj.io.load_salsa(n).resample(60.0) for n in ("60_01", "60_02")]
+    tex = mj.learn(clips, mj.LearnConfig(tmin=60, tmax=180, max_iter=2))
+    inst, what = mj.viz.texton_instances(tex, clips, per_texton=2)
+    assert what == "training segments" and len(inst) == tex.n_textons
+    segs = np.asarray(tex.segments)
+    for i, row in enumerate(inst):
+        mine = segs[segs[:, 3] == i]
+        assert 1 <= len(row) <= 2
+        s, b, n, _ = mine[0]
+        np.testing.assert_array_equal(row[0].rotations, clips[s][b : b + n].rotations)
+    samples, what = mj.viz.texton_instances(tex, None, per_texton=1)
+    assert what == "samples" and [len(r) for r in samples] == [1] * tex.n_textons
+    assert all(np.isfinite(np.asarray(mj.forward_kinematics(r[0]))).all() for r in samples)
+    png = mj.viz.render_texton_gallery(tex, tmp_path / "g.png", clips, per_texton=2, dpi=40)
+    with Image.open(png) as im:
+        assert im.format == "PNG" and im.size[1] > 40 * tex.n_textons
+    with pytest.raises(ValueError, match="training clips"):
+        mj.viz.texton_instances(tex, clips[:1])

@@ -26,7 +26,16 @@ from mtex_jax.texture import LearnConfig, learn, learn_distributed
 # four short salsa clips (the shipped 60 Hz data): process 0 holds the first two
 CLIPS = ("60_01", "60_02", "60_03", "60_04")
 FRAMES = 600
-CONFIG = dict(tmin=30, tmax=90, state_dim=6, threshold=2.0, max_iter=4, fps=60.0)
+CONFIG = dict(
+    tmin=30,
+    tmax=90,
+    state_dim=6,
+    threshold=2.0,
+    max_iter=4,
+    fps=60.0,
+    observation="residual",
+    init="greedy",
+)
 TIMEOUT = 240.0  # seconds for both workers together; they are killed after it
 
 WORKER = textwrap.dedent(

@@ -21,6 +21,7 @@ from mtex_jax.texture import (
     segment_log_likelihood,
     segment_scores,
 )
+from paper_settings import UNTIED
 
 
 def _data(rng, T, n_t, D=4):
@@ -194,7 +195,9 @@ def test_marginal_at_least_best_path_on_held_out_salsa(cmu_motions):
 
     train = [m.resample(30.0) for m in cmu_motions[:3]]
     held = [m.resample(30.0)[:600] for m in cmu_motions[11:13]]
-    cfg = mj.LearnConfig(tmin=30, tmax=90, state_dim=8, fps=30.0, threshold=0.3, max_iter=2)
+    cfg = mj.LearnConfig(
+        tmin=30, tmax=90, state_dim=8, fps=30.0, threshold=0.3, max_iter=2, **UNTIED
+    )
     tex = mj.learn(train, cfg)
     for m in held:
         ll = tex.log_likelihood(m)

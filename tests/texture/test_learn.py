@@ -13,7 +13,7 @@ from scipy.optimize import linear_sum_assignment
 import mtex_jax as mj
 from cpu_devices import run_with_cpu_devices
 from mtex_jax.texture import LearnConfig, MotionTexture, learn, load_texture
-from paper_settings import PAPER
+from paper_settings import PAPER, UNTIED
 
 
 # ---------------------------------------------------------------------------------------------
@@ -220,7 +220,7 @@ def jax_leaves(mt: MotionTexture) -> list[np.ndarray]:
 def test_learn_input_errors():
     rng = np.random.default_rng(0)
     ok = rng.normal(size=(100, 6))
-    cfg = LearnConfig(tmin=10, tmax=30, state_dim=2)
+    cfg = LearnConfig(tmin=10, tmax=30, state_dim=2, **UNTIED)
     with pytest.raises(ValueError, match="empty"):
         learn([], cfg)
     with pytest.raises(ValueError, match="shorter than tmin"):
@@ -236,9 +236,9 @@ def test_learn_input_errors():
     with pytest.raises(ValueError, match="tmax"):
         LearnConfig(tmin=10, tmax=9)
     with pytest.raises(ValueError, match="state_dim"):
-        learn([ok], LearnConfig(tmin=10, tmax=30, state_dim=7))
+        learn([ok], LearnConfig(tmin=10, tmax=30, state_dim=7, **UNTIED))
     with pytest.raises(ValueError, match="cannot be cut"):
-        learn([ok[:25]], LearnConfig(tmin=10, tmax=12, state_dim=2))
+        learn([ok[:25]], LearnConfig(tmin=10, tmax=12, state_dim=2, **UNTIED))
     with pytest.raises(TypeError, match="mixture"):
         learn([ok, mj.load_example("walk")], cfg)
 
@@ -258,7 +258,7 @@ def test_sharded_learning_equals_single_device(tmp_path):
         rng = np.random.default_rng(11)
         Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=24)
         parts = [Y[:700], Y[700:1300], Y[1300:]]
-        base = dict(tmin=40, tmax=120, state_dim=4, threshold=0.5, max_iter=3)
+        base = dict(tmin=40, tmax=120, state_dim=4, threshold=0.5, max_iter=3, **UNTIED)
         one = learn(parts, LearnConfig(**base, shard=False))
         two = learn(parts, LearnConfig(**base, shard=True))
         assert np.array_equal(np.asarray(one.segments), np.asarray(two.segments))
@@ -277,7 +277,7 @@ def test_learn_does_not_shard_over_one_process_cpu_devices_by_default():
     from mtex_jax.texture._learning.em import Runner
 
     ys = [np.zeros((50, 3)), np.zeros((40, 3))]
-    cfg = LearnConfig(tmin=10, tmax=20, state_dim=2)
+    cfg = LearnConfig(tmin=10, tmax=20, state_dim=2, **UNTIED)
     assert cfg.shard is None
     assert Runner(ys, cfg, devices=jax.devices() * 2).sharding is None
 
@@ -297,7 +297,9 @@ def test_learn_on_two_cpu_devices_finishes_and_equals_one(cmu_dir):
         from mtex_jax.texture import LearnConfig, learn
         d = os.environ["CMU_DIR"]
         clips = [mj.io.read_bvh(os.path.join(d, f"60_0{i}.bvh")).resample(60.0) for i in (1, 2)]
-        base = dict(tmin=60, tmax=180, state_dim=12, fps=60.0, min_segments=3, max_iter=3)
+        base = dict(
+            tmin=60, tmax=180, state_dim=12, fps=60.0, min_segments=3, max_iter=3, **UNTIED
+        )
         two = learn(clips, LearnConfig(**base))
         ref = learn(clips, LearnConfig(**base, shard=False))
         assert np.array_equal(np.asarray(two.segments), np.asarray(ref.segments))
@@ -392,9 +394,9 @@ def test_pruning_the_greedy_textons_before_the_first_e_step_changes_nothing(monk
 
 @pytest.mark.slow
 def test_pruning_the_greedy_textons_early_changes_nothing_on_salsa(monkeypatch, cmu_motions):
-    # the default learn (BIC selection, k = D) on the 14 clips at 60 Hz: 155 greedy textons, of
+    # the untied learn (BIC selection, k = D) on the 14 clips at 60 Hz: 155 greedy textons, of
     # which 148 have fewer than 3 segments
-    cfg = LearnConfig(tmin=60, tmax=180, fps=60.0)
+    cfg = LearnConfig(tmin=60, tmax=180, fps=60.0, **UNTIED)
     new, old = _learn_both_ways(monkeypatch, cmu_motions, cfg)
     _assert_same_texture(new, old)
 

@@ -348,13 +348,13 @@ def _clips(seed=0, n=3, T=240, D=5):
     return [_smooth(rng, T, D) for _ in range(n)]
 
 
-def test_learn_defaults_are_stable_residual_with_durations():
+def test_learn_defaults_are_stable_tied_with_durations():
     ys = _clips()
     tex = mj.learn(ys, mj.LearnConfig(tmin=20, tmax=60, max_iter=3))
     cfg = tex.config
-    assert cfg.observation == "residual" and cfg.durations == "lognormal"
-    assert cfg.state_dim is not None and 1 <= cfg.state_dim < 5
-    assert tex.textons.observation == "residual"
+    assert cfg.observation == "tied" and cfg.durations == "lognormal" and cfg.init == "chunks"
+    assert cfg.state_dim == 5 and cfg.dof == 4.0
+    assert tex.textons.observation == "tied"
     assert tex.log_durations is not None and tex.log_durations.shape == (tex.n_textons, 41)
     np.testing.assert_allclose(np.exp(np.asarray(tex.log_durations)).sum(1), 1.0, rtol=1e-9)
     assert float(jnp.max(spectral_radius(tex.textons))) <= 1.0 + 1e-9
@@ -402,7 +402,7 @@ def test_synthesis_draws_lengths_from_the_fitted_durations():
 
 def test_learned_models_round_trip_and_old_files_load_as_paper(tmp_path):
     ys = _clips(1)
-    tex = mj.learn(ys, mj.LearnConfig(tmin=20, tmax=60, max_iter=2))
+    tex = mj.learn(ys, mj.LearnConfig(tmin=20, tmax=60, max_iter=2, observation="residual"))
     p = tmp_path / "t.npz"
     tex.save(p)
     back = mj.load_texture(p)

@@ -51,6 +51,7 @@ def learned():
         tmin=20,
         tmax=60,
         observation="full",
+        init="greedy",
         max_iter=2,
         n_textons=2,
         selection="none",
@@ -107,6 +108,118 @@ def test_bank_rows_are_the_plausible_segments_residuals(learned):
     assert sorted(np.asarray(strict.labels).tolist()) == sorted(np.unique(segs[:, 3]).tolist())
 
 
+def test_bank_records_the_segment_of_every_block(learned):
+    tex, ys = learned
+    bank = tex.residuals
+    segs = [tuple(int(x) for x in r) for r in np.asarray(tex.segments)]
+    kept = _kept(tex, ys)
+    assert np.array_equal(np.asarray(bank.segments), [segs.index(key) for key, _ in kept])
+    # the public builder numbers them the same way, short segments included
+    again = residual_bank(tex.textons, ys, tex.segments)
+    assert np.array_equal(np.asarray(again.segments), np.asarray(bank.segments))
+    short = np.concatenate([np.asarray([[0, 0, 2, 0]]), np.asarray(tex.segments)])
+    assert np.array_equal(
+        np.asarray(residual_bank(tex.textons, ys, short).segments), np.asarray(bank.segments) + 1
+    )
+
+
+def test_aligned_draws_replay_the_instance_segment(learned):
+    tex, ys = learned
+    bank = tex.residuals
+    rows, starts, lengths, labels, segments = (
+        np.asarray(a) for a in (bank.rows, bank.starts, bank.lengths, bank.labels, bank.segments)
+    )
+    segs = np.asarray(tex.segments)
+    L = 130
+    left_out = np.setdiff1d(np.arange(len(segs)), segments)  # the glitch's segment
+    assert left_out.size == 1
+    inst = np.concatenate([segments, left_out, [-1]])
+    lab = segs[np.maximum(inst, 0), 3]
+    v = np.asarray(draw_residuals(jax.random.key(0), bank, lab, L, instances=inst))
+    for m, j in enumerate(segments):  # numpy: the instance's own residuals, cyclically
+        u = np.asarray(
+            [
+                _residual(tex, ys[segs[j, 0]], t, segs[j, 3])
+                for t in range(segs[j, 1] + 2, segs[j, 1] + segs[j, 2])
+            ]
+        )
+        assert np.allclose(v[m], u[np.arange(L) % len(u)], atol=1e-10)
+    # a left-out instance, or none, draws a block of a segment of the texton
+    blocks = [
+        np.resize(rows[a : a + n], (L, rows.shape[1])) for a, n in zip(starts, lengths, strict=True)
+    ]
+    for m in (len(segments), len(segments) + 1):
+        assert any(np.array_equal(v[m], blocks[j]) for j in np.flatnonzero(labels == lab[m]))
+    # an instance of another texton is not used
+    other = np.flatnonzero(labels != labels[0])[0]
+    w = np.asarray(
+        draw_residuals(jax.random.key(0), bank, [labels[0]], L, instances=[segments[other]])
+    )
+    assert not np.array_equal(w[0], blocks[other])
+    # without instances (shuffled) the draws are those of the uniform choice
+    assert np.array_equal(
+        np.asarray(draw_residuals(jax.random.key(0), bank, lab, L)),
+        np.asarray(draw_residuals(jax.random.key(0), bank, lab, L, instances=None)),
+    )
+    with pytest.raises(ValueError, match="instances"):
+        draw_residuals(jax.random.key(0), bank, [0, 1], L, instances=[0])
+
+
+def _dense_constrained(tex, i, start, end, length, v):
+    """Numpy: texton ``i`` held at ``start`` (frames 0, 1) and ``end`` (frames l−2, l−1),
+    the free states minimising ``Σ_j ‖B⁻¹(x_j − A1 x_{j−1} − A2 x_{j−2} − d) − v_j‖²`` by
+    dense least squares; observations ``μ + C x``."""
+    t = tex.textons[int(i)]
+    mu, C, A1, A2, d, B = (np.asarray(a) for a in (t.mu, t.C, t.A1, t.A2, t.d, t.B))
+    k = C.shape[1]
+    W = np.linalg.inv(B)
+    held = {0: (start[0] - mu) @ C, 1: (start[1] - mu) @ C}
+    held |= {length - 2: (end[0] - mu) @ C, length - 1: (end[1] - mu) @ C}
+    free = [f for f in range(length) if f not in held]
+    col = {f: n * k for n, f in enumerate(free)}
+    G, c = np.zeros(((length - 2) * k, len(free) * k)), np.zeros((length - 2) * k)
+    for j in range(2, length):
+        r = slice((j - 2) * k, (j - 1) * k)
+        c[r] = W @ d + v[j - 2]
+        for f, M in ((j, W), (j - 1, -W @ A1), (j - 2, -W @ A2)):
+            if f in held:
+                c[r] -= M @ held[f]
+            else:
+                G[r, col[f] : col[f] + k] = M
+    x = np.zeros((length, k))
+    x[free] = np.linalg.lstsq(G, c, rcond=None)[0].reshape(len(free), k)
+    for f, h in held.items():
+        x[f] = h
+    return mu + x @ C.T
+
+
+def test_aligned_synthesis_replays_each_textons_instance(learned):
+    """Two textons along a clip's own segmentation: each is the constrained least squares
+    (dense numpy reference) with its own instance's residuals (numpy), cyclically."""
+    from mtex_jax.texture._synthesis.sequence import synthesize_path
+
+    tex, ys = learned
+    segs = np.asarray(tex.segments)
+    c = 1  # no glitch in clip 1
+    rows = np.flatnonzero(segs[:, 0] == c)[:3]
+    idx, path, lens = rows[:2], segs[rows[:2], 3], segs[rows[:2], 2]
+    kp = np.asarray(tex.key_poses)
+    args = (path, lens, idx, None, kp[rows[2]], False, "whitened", "blend")
+    Y = np.asarray(synthesize_path(tex, jax.random.key(3), *args, "aligned"))
+    at = 0
+    for m, j in enumerate(idx):
+        s0, a0, n0, i0 = segs[j]
+        u = np.asarray([_residual(tex, ys[s0], t, i0) for t in range(a0 + 2, a0 + n0)])
+        ref = _dense_constrained(
+            tex, i0, kp[j], kp[rows[m + 1]], n0 + 2, np.resize(u, (n0, u.shape[1]))
+        )
+        assert np.allclose(Y[at : at + n0], ref[:n0], atol=1e-8)
+        at += n0
+    # the shuffled replay does not follow the instance's residuals
+    Z = np.asarray(synthesize_path(tex, jax.random.key(3), *args, "shuffled"))
+    assert not np.allclose(Z, Y, atol=1e-3)
+
+
 def test_draws_are_blocks_from_a_uniformly_chosen_segment_of_the_texton(learned):
     tex, _ = learned
     bank = tex.residuals
@@ -161,7 +274,8 @@ def test_synthesis_replays_the_bank_and_the_file_keeps_it(learned, tmp_path):
     assert back.config.innovations == "residuals" and back.residuals is not None
     for f in ("rows", "starts", "lengths", "labels"):
         assert np.array_equal(np.asarray(getattr(back.residuals, f)), getattr(tex.residuals, f))
-    assert np.array_equal(np.asarray(mj.synthesize(jax.random.key(0), back, n_frames=150).Y), a)
+    shuffled = lambda t: mj.synthesize(jax.random.key(0), t, n_frames=150, replay="shuffled").Y
+    assert np.array_equal(np.asarray(shuffled(back)), np.asarray(shuffled(tex)))
     assert "training residuals" in mj.texture.texture_summary(back)
     with np.load(tmp_path / "t.npz") as f:
         arrays = {k: f[k] for k in f.files}
@@ -171,11 +285,21 @@ def test_synthesis_replays_the_bank_and_the_file_keeps_it(learned, tmp_path):
         load_texture(tmp_path / "half.npz")
     for name, value, msg in (
         ("residuals.labels", arrays["residuals.labels"] + tex.n_textons, "outside"),
-        ("residuals.starts", arrays["residuals.starts"] + 10**6, "row ranges"),
+        ("residuals.starts", arrays["residuals.starts"] + 10**6, "(row ranges|outside)"),
     ):
         np.savez(tmp_path / "bad.npz", **{**arrays, name: value})
         with pytest.raises(ValueError, match=rf"bad\.npz.*{msg}"):
             load_texture(tmp_path / "bad.npz")
+
+
+def test_file_keeps_the_alignment(learned, tmp_path):
+    tex, _ = learned
+    tex.save(tmp_path / "t.npz")
+    back = load_texture(tmp_path / "t.npz")
+    assert back.residuals.segments is not None
+    assert np.array_equal(np.asarray(back.residuals.segments), tex.residuals.segments)
+    a = mj.synthesize(jax.random.key(0), tex, n_frames=150).Y
+    assert np.array_equal(np.asarray(mj.synthesize(jax.random.key(0), back, n_frames=150).Y), a)
 
 
 def test_bad_input_is_rejected(learned):
@@ -197,6 +321,8 @@ def test_bad_input_is_rejected(learned):
         ResidualBank(rows=jnp.zeros((4, 3)), starts=two, lengths=one, labels=one)
     with pytest.raises(ValueError, match="row ranges"):
         ResidualBank(rows=jnp.zeros((4, 3)), starts=one * 2, lengths=one * 3, labels=one)
+    with pytest.raises(ValueError, match="segments"):
+        ResidualBank(rows=jnp.zeros((4, 3)), starts=one, lengths=one, labels=one, segments=two)
     segs = np.asarray(tex.segments)
     with pytest.raises(ValueError, match="lies outside clip"):
         residual_bank(tex.textons, ys, segs + np.asarray([0, 1000, 0, 0]))

@@ -3,6 +3,8 @@ the learned textons, and Student-t weights."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -181,3 +183,85 @@ def test_tied_student_t_m_step_is_finite_and_tied(dof):
     for a in A1y[1:]:
         np.testing.assert_allclose(a, A1y[0], rtol=1e-8, atol=1e-10)
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(got))
+
+
+def test_effective_parameters_of_shrunk_estimates():
+    """With the textons' frames and segments, a shrunk ``Q_i`` counts ``N_i/(N_i + ν₀)`` of
+    its entries and ``S0`` ``s_i/(s_i + κ)``: a texton with no data costs its offsets only,
+    one with unbounded data its full count."""
+    model, D = observation_model("tied"), 5
+    n_q, n_s0, shared = D * (D + 1) // 2, D * (2 * D + 1), 2 * D * D + D * (D + 1) // 2
+    frames, starts = np.array([0.0, IW_FRAMES, 1e12]), np.array([0.0, INIT_STARTS, 1e12])
+    got = model.n_params(3, D, D, frames, starts)
+    want = shared + 3 * 3 * D + n_q * (0 + 0.5 + 1.0) + n_s0 * (0 + 0.5 + 1.0)
+    assert got == pytest.approx(want, rel=1e-9)
+    assert model.n_params(3, D, D) == shared + 3 * (3 * D + n_q + n_s0)
+    with pytest.raises(ValueError, match="one entry per texton"):
+        model.n_params(2, D, D, frames, starts)
+
+
+def _synthetic_texture(n_true, seed, clips=6, T=600, D=3, tmin=20, tmax=40):
+    """Clips drawn from a motion texture of ``n_true`` tied textons (MT §3): a Markov chain of
+    textons without self-transitions, segment lengths uniform on ``[tmin, tmax]``; every
+    segment starts from its texton's initial two-frame state (around its resting pose) and
+    runs its dynamics: shared ``A1 = 0.9 I``, ``A2 = −0.2 I``, its own offset (so its own
+    resting pose) and its own Student-t noise scales."""
+    rng = np.random.default_rng(seed)
+    A1, A2 = 0.9 * np.eye(D), -0.2 * np.eye(D)
+    rest = 3.0 * rng.normal(size=(n_true, D))  # stationary means μ_i = (I − A1 − A2)⁻¹ d_i
+    d = rest @ (np.eye(D) - A1 - A2).T
+    scale = rng.uniform(0.05, 0.15, size=(n_true, D))
+    ys = []
+    for _ in range(clips):
+        y = np.zeros((T, D))
+        lab, t = int(rng.integers(n_true)), 0
+        while t < T:
+            n = int(rng.integers(tmin, tmax + 1))
+            for u in range(t, min(t + n, T)):
+                if u - t < 2:  # the texton's initial state
+                    y[u] = rest[lab] + 0.3 * scale[lab] * rng.normal(size=D)
+                else:
+                    eps = scale[lab] * rng.standard_t(4.0, size=D)
+                    y[u] = A1 @ y[u - 1] + A2 @ y[u - 2] + d[lab] + eps
+            t += n
+            if n_true > 1:
+                lab = int(rng.choice([j for j in range(n_true) if j != lab]))
+        ys.append(y)
+    return ys
+
+
+@pytest.mark.parametrize("n_true", [1, 4])
+def test_selection_recovers_the_number_of_textons(n_true):
+    """From many more initial textons (one per 4 chunks: 45 here), the default selection (AIC
+    with the tied model's effective parameters) keeps as many textons as drew the data; so
+    does BIC."""
+    from mtex_jax.texture import LearnConfig, learn
+
+    ys = _synthetic_texture(n_true, seed=15)
+    cfg = LearnConfig(tmin=20, tmax=40, chunk_frames=20)  # otherwise the defaults: tied textons
+    tex = learn(ys, cfg)
+    assert tex.config.selection == "aic" and tex.n_textons == n_true, tex.summary()
+    bic = learn(ys, dataclasses.replace(cfg, selection="bic"))
+    assert bic.n_textons == n_true, bic.summary()
+    # the vocabulary's figures, counted again from the segmentation and M
+    voc, segs, M = tex.summary(), np.asarray(tex.segments), np.asarray(tex.M)
+    for i, row in enumerate(voc.rows()):
+        mine = segs[segs[:, 3] == i]
+        assert row["segments"] == len(mine) and row["frames"] == mine[:, 2].sum()
+        assert row["mean_length"] == pytest.approx(mine[:, 2].mean())
+        want = sorted(
+            ((j, M[i, j]) for j in range(n_true) if j != i and M[i, j] >= 0.1), key=lambda p: -p[1]
+        )
+        assert [j for j, _ in row["successors"]] == [j for j, _ in want]
+    assert voc.largest_share == pytest.approx(np.bincount(segs[:, 3]).max() / len(segs))
+    with pytest.raises(IndexError, match="out of range"):
+        voc.successors(n_true)
+
+
+def test_chunk_length_is_clipped_to_the_segment_lengths():
+    from mtex_jax.texture import LearnConfig
+
+    assert LearnConfig().chunk_length == 80
+    assert LearnConfig(tmin=10, tmax=30).chunk_length == 30
+    assert LearnConfig(tmin=100, tmax=300).chunk_length == 100
+    assert LearnConfig(tmin=10, tmax=None, chunk_frames=50).chunk_length == 50

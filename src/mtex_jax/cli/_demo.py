@@ -78,7 +78,6 @@ def run_demo(
     *,
     seconds: float = 20.0,
     seed: int = 0,
-    threshold: float = 0.3,
     n_train: int | None = None,
     n_held: int | None = None,
     max_iter: int = 20,
@@ -95,13 +94,20 @@ def run_demo(
     from ..io import load_salsa, salsa_credit, salsa_split, write_bvh
     from ..metrics import MotionJudge
     from ..texture import LearnConfig, learn, random_path, synthesize, texture_summary
-    from ..viz import plot_timeline, render_filmstrip, render_gif_pair
+    from ..viz import (
+        plot_timeline,
+        render_filmstrip,
+        render_gif_pair,
+        render_texton_gallery,
+        write_html,
+    )
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = {
         "model": out / "texture.npz",
         "timeline": out / "timeline.png",
+        "gallery": out / "textons.png",
         "dance": out / "new_dance.bvh",
         "gif": out / "new_dance.gif",
         "filmstrip": out / "new_dance.png",
@@ -121,18 +127,15 @@ def run_demo(
         f" s), {len(held)} held out ({', '.join(held_names)}), {FPS:g} Hz\n"
         f"  {salsa_credit().splitlines()[2]} {salsa_credit().splitlines()[3]}"
     )
-    # the paper's texton model (k = 12, white residual, flat durations): on the salsa clips its
-    # zero-noise synthesis is as smooth as the denser default model's (benchmarks/results/
-    # quality.md) and it learns several times faster
-    cfg = LearnConfig.paper(
-        tmin=60, tmax=180, fps=FPS, min_segments=3, threshold=threshold, max_iter=max_iter
-    )
+    # the default model: tied textons (design §10.10), a vocabulary chosen by the selection
+    cfg = LearnConfig(tmin=60, tmax=180, fps=FPS, max_iter=max_iter)
     say(
         f"learning a motion texture: segments of {cfg.tmin}-{cfg.tmax} frames "
-        f"({cfg.tmin / FPS:g}-{(cfg.tmax or 0) / FPS:g} s), state dimension {cfg.state_dim}, "
-        f"greedy threshold {threshold:g}, textons with < {cfg.min_segments} segments pruned"
+        f"({cfg.tmin / FPS:g}-{(cfg.tmax or 0) / FPS:g} s), {cfg.observation} textons, "
+        f"initialised from {cfg.chunk_length}-frame chunks, textons with < {cfg.min_segments} "
+        f"segments pruned, their number chosen by {cfg.selection.upper()}"
     )
-    say("  greedy initialisation, then EM (the first E-step also prunes, the longest part) ...")
+    say("  initial textons from clustered chunks, then EM and the selection ...")
 
     def progress(info: dict[str, Any]) -> None:
         pruned = f", pruned {info['pruned']}" if info.get("pruned") else ""
@@ -143,7 +146,7 @@ def run_demo(
         )
 
     n_frames = sum(math.floor(m.duration * FPS + 1e-9) + 1 for m in train)
-    tex = steps.run("learn (greedy init + EM)", lambda: learn(train, cfg, callback=progress))
+    tex = steps.run("learn (EM + selection)", lambda: learn(train, cfg, callback=progress))
     tex.save(files["model"])
     say(texture_summary(tex).split("\nobjective")[0])
     stats = texture_stats(tex)
@@ -170,6 +173,11 @@ def run_demo(
         )
 
     steps.run("timeline", timeline)
+    steps.run(
+        "texton gallery",
+        lambda: render_texton_gallery(tex, files["gallery"], train, per_texton=3),
+    )
+    say(str(tex.summary()))
 
     n_out = max(4, round(seconds * FPS))
     mean_len = float(np.asarray(tex.segment_lengths).mean())
@@ -177,11 +185,13 @@ def run_demo(
     path = random_path(jax.random.key(seed), tex, n_textons)
     say(
         f"synthesising a new salsa: {n_out} frames ({n_out / FPS:g} s), a random path of "
-        f"{n_textons} textons (seed {seed}), constrained least squares per texton (MT §5)"
+        f"{n_textons} textons (seed {seed}), constrained synthesis per texton with sampled "
+        "noise (MT §5)"
     )
-    # key None: the least-squares solution itself (zero noise), the paper's constrained
-    # synthesis; the lengths of the key poses' segments are rescaled to fill n_out frames
-    syn = steps.run("synthesise", lambda: synthesize(None, tex, path=path, n_frames=n_out))
+    # the default synthesis: the constrained least squares with innovations replayed from the
+    # training residuals; the lengths of the key poses' segments are rescaled to fill n_out
+    syn_key = jax.random.key(seed + 1)
+    syn = steps.run("synthesise", lambda: synthesize(syn_key, tex, path=path, n_frames=n_out))
     dance = syn.motion
     assert dance is not None  # the texture was learned from motions
     write_bvh(files["dance"], dance)
@@ -202,6 +212,18 @@ def run_demo(
             seconds=dance.duration,
             fps=gif_fps,
             trajectories=["lFoot", "rFoot"],
+        ),
+    )
+    # the page to look at: both dances in a 3-D player, the texton timeline, the vocabulary
+    files["player"] = steps.run(
+        "HTML player",
+        lambda: write_html(
+            out / "index.html",
+            [syn, real],
+            labels=[f"new salsa (seed {seed})", f"real: {real_name} (held out)"],
+            title="mtex demo: a new salsa beside a real one",
+            texture=tex,
+            gallery=train,
         ),
     )
     steps.run(
@@ -251,7 +273,6 @@ def run_demo(
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     positive("seconds", args.seconds)
-    positive("threshold", args.threshold)
     if args.seconds > MAX_SECONDS:
         raise ValueError(f"--seconds {args.seconds:g} exceeds the limit of {MAX_SECONDS:g}")
     for name in ("train_clips", "held_clips"):
@@ -262,7 +283,6 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         args.out,
         seconds=args.seconds,
         seed=args.seed,
-        threshold=args.threshold,
         n_train=args.train_clips,
         n_held=args.held_clips,
         max_iter=args.max_iter,
@@ -276,19 +296,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser(
         "demo",
         help="run the main job on the shipped CMU salsa clips",
-        description="Learn a motion texture from the 10 training salsa clips (greedy "
-        "initialisation + EM), synthesise a new 20 s salsa, and write the model, the new "
-        "dance as BVH, a GIF of it beside a real held-out clip, a filmstrip, the texton "
-        "timeline of the training clips and the quality report against the held-out clips.",
+        description="Learn a motion texture from the 10 training salsa clips (the default "
+        "settings: tied textons, EM and the selection of their number), synthesise a new 20 s "
+        "salsa, and write the model, the gallery of its textons, the new dance as BVH, a GIF "
+        "of it beside a real held-out clip, a filmstrip, the texton timeline of the training "
+        "clips and the quality report against the held-out clips.",
     )
     s.add_argument("--out", default="out", help="output folder (default: out)")
     s.add_argument(
         "--seconds", type=float, default=20.0, help="length of the new dance (default 20)"
     )
     s.add_argument("--seed", type=int, default=0, help="random seed of the texton path")
-    s.add_argument(
-        "--threshold", type=float, default=0.3, help="greedy-initialisation threshold (0.3)"
-    )
     s.add_argument(
         "--train-clips", type=int, default=None, help="use only the first N training clips"
     )

@@ -11,7 +11,17 @@ import numpy as np
 
 from ..core import MAX_GENERATED_FRAMES
 from ..texture import OBSERVATION_MODELS
-from ._validators import SOURCE_HELP, frames_of_seconds, read_source
+from ._validators import (
+    SOURCE_HELP,
+    add_force,
+    float_arg,
+    frames_of_seconds,
+    int_arg,
+    output,
+    read_source,
+    seed_arg,
+    source_path,
+)
 
 __all__ = ["register"]
 
@@ -24,6 +34,9 @@ def _cmd_learn(args: argparse.Namespace) -> int:
     pid, n_proc = 0, 1
     if args.split_clips and not args.distributed:
         raise ValueError("--split-clips needs --distributed")
+    output(args.output, "mtex_jax.MotionTexture", args.clips, args.force)
+    if args.fps is not None and not 0 < args.fps <= 10_000:
+        raise ValueError(f"--fps must be in (0, 10000] frames per second, got {args.fps:g}")
     clips = list(args.clips)
     if args.distributed:
         pid, n_proc = _distributed.start(args)
@@ -61,6 +74,7 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         observation=args.observation,
         durations=args.durations,
         selection=args.selection,
+        init=args.init,
         dof=args.dof,
         innovations=args.innovations,
     )
@@ -89,6 +103,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
     from ..texture import load_texture
     from ..viz import plot_timeline
 
+    output(args.output, "png", (args.model, args.clip), args.force)
     tex = load_texture(args.model)
     if tex.feature_map is None:
         raise ValueError(
@@ -120,6 +135,21 @@ def _cmd_segment(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_textons(args: argparse.Namespace) -> int:
+    from ..viz import render_texton_gallery
+
+    output(args.output, "png", (args.model, *args.clips), args.force)
+    if not 1 <= args.per_texton <= 10:
+        raise ValueError(f"--per-texton must be in 1..10, got {args.per_texton}")
+    tex = load_model(args.model)
+    print(tex.summary())
+    clips = [read_source(c) for c in args.clips] if args.clips else None
+    render_texton_gallery(tex, args.output, clips, per_texton=args.per_texton)
+    what = "training segments" if clips else "samples of each texton's dynamics"
+    print(f"wrote {args.output} ({tex.n_textons} rows of {what})")
+    return 0
+
+
 def load_model(path: str):
     from ..texture import load_texture
 
@@ -129,19 +159,23 @@ def load_model(path: str):
     return tex
 
 
-def _check_outputs(out: str, gif: str | None) -> None:
-    """Refuse output names of the wrong kind before any work is done."""
+def _check_outputs(
+    out: str, gif: str | None, inputs: tuple[str, ...] = (), force: bool = False
+) -> None:
+    """Refuse output names of the wrong kind, outputs that are inputs and files of another
+    kind (without ``force``) before any work is done."""
     if not str(out).lower().endswith(".bvh"):
         raise ValueError(f"-o/--output must be a .bvh file, got {out!r}")
     if gif is not None and not str(gif).lower().endswith(".gif"):
         raise ValueError(f"--gif must be a .gif file, got {gif!r}")
+    output(out, "bvh", inputs, force)
+    output(gif, "gif", (*inputs, out), force, option="--gif")
 
 
 def _write_outputs(syn, out: str, gif: str | None, title: str) -> None:
     from ..io import write_bvh
 
-    _check_outputs(out, gif)
-    assert syn.motion is not None
+    assert syn.motion is not None  # the outputs were checked before the work (_check_outputs)
     write_bvh(out, syn.motion)
     fps = syn.motion.fps
     print(
@@ -162,7 +196,9 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
     from ..texture import synthesize
 
-    _check_outputs(args.output, args.gif)
+    _check_outputs(
+        args.output, args.gif, tuple(c for c in (args.model, args.contacts) if c), args.force
+    )
     tex = load_model(args.model)
     assert tex.feature_map is not None  # checked by load_model
     fps = tex.feature_map.fps
@@ -185,6 +221,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         contacts = load_contacts(cpath)
     elif args.contacts:
         raise ValueError("--contacts is only used with --clean")
+    print(f"synthesising {n} frames ({n / fps:.1f} s at {fps:g} Hz)...", flush=True)
     t0 = time.perf_counter()
     syn = synthesize(jax.random.key(args.seed), tex, n_frames=n)
     print(
@@ -193,6 +230,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     if contacts is not None:
         from ..edit import clean
 
+        print("cleaning: foot contacts and the floor (a least-squares solve)...", flush=True)
         t0 = time.perf_counter()
         res = clean(tex, syn, contacts, loglik=False)
         syn = eqx.tree_at(lambda s: (s.Y, s.motion), syn, (res.Y, res.motion))
@@ -239,10 +277,21 @@ def _cmd_choreograph(args: argparse.Namespace) -> int:
 
     from ..texture import choreograph
 
-    _check_outputs(args.output, args.gif)
+    _check_outputs(
+        args.output,
+        args.gif,
+        (args.model, source_path(args.start), source_path(args.end)),
+        args.force,
+    )
     tex = load_model(args.model)
     start, pos, heading = _clip_frame(args.start, tex)
     end, _, _ = _clip_frame(args.end, tex)
+    plan = (
+        "the most probable texton path, each texton as long as its key poses' training segment"
+        if args.frames is None
+        else f"{args.frames} frames"
+    )
+    print(f"choreographing {args.start} -> {args.end}: {plan}...", flush=True)
     t0 = time.perf_counter()
     syn = choreograph(
         jax.random.key(args.seed),
@@ -289,19 +338,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument("clips", nargs="+", help=SOURCE_HELP + "; one or more")
     s.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
-    s.add_argument("--tmin", type=float, default=1.0, help="shortest segment, seconds (default 1)")
-    s.add_argument("--tmax", type=float, default=3.0, help="longest segment, seconds (default 3)")
+    s.add_argument(
+        "--tmin", type=float_arg, default=1.0, help="shortest segment, seconds (default 1)"
+    )
+    s.add_argument(
+        "--tmax", type=float_arg, default=3.0, help="longest segment, seconds (default 3)"
+    )
     s.add_argument(
         "--state-dim",
-        type=int,
+        type=int_arg,
         default=None,
         help="texton state dimension (default: chosen by BIC; the paper used 12)",
     )
     s.add_argument(
         "--observation",
         choices=tuple(OBSERVATION_MODELS),
-        default="residual",
-        help="observation model of the textons (default residual; paper = MT-11)",
+        default="tied",
+        help="observation model of the textons (default tied: shared dynamics, own offsets "
+        "and shrunk covariances; paper = MT-11)",
     )
     s.add_argument(
         "--dof",
@@ -327,36 +381,62 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument(
         "--selection",
-        choices=("bic", "none"),
-        default="bic",
-        help="choose the number of textons by BIC after EM (default) or keep EM's (none)",
+        choices=("aic", "bic", "none"),
+        default="aic",
+        help="choose the number of textons by AIC after EM (default), by BIC, or keep EM's (none)",
+    )
+    s.add_argument(
+        "--init",
+        choices=("chunks", "greedy"),
+        default="chunks",
+        help="initial segmentation: clustered chunks (default) or the paper's greedy one",
     )
     g = s.add_mutually_exclusive_group()
     g.add_argument(
         "--threshold",
-        type=float,
+        type=float_arg,
         default=None,
-        help="greedy-initialisation error threshold (default 0.3)",
+        help="greedy-initialisation error threshold (with --init greedy; default 0.3)",
     )
     g.add_argument(
-        "--textons", type=int, default=None, help="search the threshold for about N textons"
+        "--textons",
+        type=int_arg,
+        default=None,
+        help="initial textons (--init chunks; default one per 4 chunks) or the greedy "
+        "threshold's target (--init greedy)",
     )
     s.add_argument(
         "--fps",
-        type=float,
+        type=float_arg,
         default=None,
         help="resample the clips to this frame rate first (default: theirs)",
     )
-    s.add_argument("--max-iter", type=int, default=20, help="most EM iterations (default 20)")
+    s.add_argument("--max-iter", type=int_arg, default=20, help="most EM iterations (default 20)")
     s.add_argument(
         "--min-segments",
-        type=int,
+        type=int_arg,
         default=3,
         help="prune textons with fewer training segments (default 3; 1: no pruning, the paper)",
     )
     s.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
+    add_force(s)
     add_arguments(s)
     s.set_defaults(func=_cmd_learn)
+
+    s = sub.add_parser(
+        "textons",
+        help="a gallery of a texture's vocabulary",
+        description="Print every texton's training segments, mean duration and successors, "
+        "and draw one row per texton with a few of its instances: its training segments when "
+        "the training clips are given (in the order they were learned from), else samples of "
+        "its dynamics from its key poses.",
+    )
+    s.add_argument("model", help="a model file written by 'mtex learn'")
+    s.add_argument("clips", nargs="*", help="the training clips (optional); " + SOURCE_HELP)
+    s.add_argument("-o", "--output", required=True, help="gallery picture to write (.png)")
+    s.add_argument("--per-texton", type=int_arg, default=3, help="instances per texton (default 3)")
+    add_force(s)
+    s.set_defaults(func=_cmd_textons)
 
     s = sub.add_parser(
         "segment",
@@ -366,6 +446,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("model", help="a model file written by 'mtex learn'")
     s.add_argument("clip", help=SOURCE_HELP)
     s.add_argument("-o", "--output", default=None, help="timeline picture to write (.png)")
+    add_force(s)
     s.set_defaults(func=_cmd_segment)
 
     s = sub.add_parser(
@@ -376,8 +457,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument("model", help="a model file written by 'mtex learn' or 'mtex demo'")
     s.add_argument("-o", "--output", required=True, help="BVH file to write")
-    s.add_argument("--frames", type=int, default=None, help="frames to make (default 10 s)")
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--frames", type=int_arg, default=None, help="frames to make (default 10 s)")
+    s.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
     s.add_argument("--gif", default=None, help="also render an animated GIF here")
     s.add_argument(
         "--clean",
@@ -389,6 +470,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="contact model for --clean (default MODEL.contacts.npz, see 'mtex contacts')",
     )
+    add_force(s)
     s.set_defaults(func=_cmd_synth)
 
     s = sub.add_parser(
@@ -403,8 +485,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--end", required=True, help="end pose, CLIP:FRAME")
     s.add_argument("-o", "--output", required=True, help="BVH file to write")
     s.add_argument(
-        "--frames", type=int, default=None, help="total frames (default: planned lengths)"
+        "--frames",
+        type=int_arg,
+        default=None,
+        help="total frames (default: the most probable texton path between the poses, each "
+        "texton as long as its training segment)",
     )
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
     s.add_argument("--gif", default=None, help="also render an animated GIF here")
+    add_force(s)
     s.set_defaults(func=_cmd_choreograph)

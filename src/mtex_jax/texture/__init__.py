@@ -127,11 +127,17 @@ from ._texton.texton import (
     spectral_radius as spectral_radius,
     stack_textons as stack_textons,
 )
+from ._vocabulary import (
+    SUCCESSOR_MIN as SUCCESSOR_MIN,
+    Vocabulary as Vocabulary,
+    vocabulary as vocabulary,
+)
 
 __all__ = [
     "MAX_SELF_REPEATS",
     "OBSERVATION_MODELS",
     "PLAUSIBLE_TAIL",
+    "SUCCESSOR_MIN",
     "BandedSolution",
     "BlockTridiagCholesky",
     "DynamicsStats",
@@ -147,6 +153,7 @@ __all__ = [
     "Subspace",
     "Synthesis",
     "Texton",
+    "Vocabulary",
     "bic_select",
     "block_banded_matvec",
     "block_banded_solve",
@@ -201,4 +208,5 @@ __all__ = [
     "texture_summary",
     "threshold_for_textons",
     "viterbi_segments",
+    "vocabulary",
 ]

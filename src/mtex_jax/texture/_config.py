@@ -7,6 +7,7 @@ from typing import Any
 
 from ._observation import observation_model
 from ._texton.checks import check_dof
+from ._texton.validate import check_config_limits
 
 # the paper's learning settings, the defaults before issue 16 (see LearnConfig.paper)
 _PAPER: dict[str, Any] = dict(
@@ -18,6 +19,7 @@ _PAPER: dict[str, Any] = dict(
     rho_max=None,
     dof=None,
     innovations="white",
+    init="greedy",
 )
 
 
@@ -29,24 +31,25 @@ class LearnConfig:
         tmin: shortest segment (frames, ``>= 3``); the paper uses about 1 s.
         tmax: longest segment (frames); ``None`` = unbounded (paper-exact, ``O(T²)``).
         state_dim: texton state dimension ``k`` (the paper: 12–15); ``None`` (default):
-            ``D`` for ``observation="full"``, else chosen by BIC of one texton fitted on all
-            the clips among 2, 4, … and ``D`` (:func:`choose_state_dim`); when BIC chooses
-            ``D`` there is no residual left and the textons are ``"full"``.
+            ``D`` for the full-dimensional models (``"tied"``, ``"full"``), else chosen by BIC
+            of one texton fitted on all the clips among 2, 4, … and ``D``
+            (:func:`choose_state_dim`); when BIC chooses ``D`` there is no residual left and
+            the textons are ``"full"``.
         threshold: greedy-initialisation error threshold (squared one-step prediction error
             per observation dimension, in the units of ``Y``: z-units for motions). ``None``:
             from ``n_textons``, else by BIC over ``bic_thresholds``, else 0.3.
-        n_textons: target number of textons for the threshold search (used when
-            ``threshold`` is ``None``).
+        n_textons: with ``init="chunks"``: the initial number of textons (default ``None``:
+            one per 4 chunks, so that the initial vocabulary grows with the data); with
+            ``init="greedy"``: the target of the threshold search (used when ``threshold`` is
+            ``None``).
         max_iter: most EM iterations.
         tol: EM has converged when the objective ``log P(Y, H)`` gains less than ``tol``
             per frame in an iteration (a change relative to the number of frames, not to the
-            objective, whose sign changes during a learn: −71,536 → +111 per frame on the 14
-            salsa clips at 60 Hz).
+            objective, whose sign can change during a learn; design §4.6).
         relabel_tol: EM has also converged when at most this share of the frames changed
             texton in an iteration (default 0: none changed). EM stops at convergence (or
-            after ``max_iter`` iterations). On the 14 salsa clips at 60 Hz the final EM
-            relabels 1182, 794, 430, 206, 262 and 0 frames (of 13,723): a share of 0.02 would
-            stop it two iterations earlier, with a different model.
+            after ``max_iter`` iterations). A positive share stops EM earlier, with a
+            different model.
         pseudo_count: Dirichlet pseudo-count added to transition and initial counts.
         fps: resample motions to this frame rate first (``None``: keep; all clips must agree).
         ridge, q_floor, sigma2_floor, init_prior_weight: texton fit regularisation (see
@@ -54,32 +57,36 @@ class LearnConfig:
         rho_max: bound on every texton's companion spectral radius (default 0.999: stable
             textons, so noise-driven synthesis stays bounded); ``None`` = unbounded (the
             paper). Not 1: a texton projected to a unit root keeps the drift ``d`` along it and
-            walks away linearly (on the 10 training clips of the quality split, one texton's
-            forearm channels reached 27-29 times the key poses' range in 10,000 noise-driven
-            frames at ``rho_max=1``, 3.1-3.3 times at 0.999, for 0.02 nats per training frame).
+            walks away linearly (design §2.7).
         shard: split sequences across all JAX devices when there is more than one. ``None``
             (default): only when they are not CPU devices: XLA:CPU's devices of one process
             share one thread pool, and a learn on several of them stalled in an all-reduce
             that one device never joined (the salsa clips, 2 devices on 2 cores).
         bic_thresholds: thresholds to choose from by BIC (see :func:`bic_select`).
         observation: the observation model of every texton (see :class:`Texton`):
-            ``"residual"`` (default: the residual outside the state subspace follows its own
-            AR(2)), ``"full"`` (``k = D``: an AR(2) on ``y``, an autoregressive HSMM),
-            ``"tied"`` (full textons sharing their dynamics matrices, with per-texton offsets
-            and shrunk covariances: design §10.10) or ``"paper"`` (MT-11: white residual
-            noise); the registry is :data:`OBSERVATION_MODELS`.
+            ``"tied"`` (default: full-dimensional textons sharing their dynamics matrices,
+            with per-texton offsets and covariances shrunk to a shared one, design §10.10: a
+            new texton costs a move, not a 54-dimensional noise model, so the texture keeps a
+            vocabulary), ``"residual"`` (the residual outside the state subspace follows its
+            own AR(2)), ``"full"`` (``k = D``: untied AR(2) textons on ``y``, an
+            autoregressive HSMM) or ``"paper"`` (MT-11: white residual noise); the registry is
+            :data:`OBSERVATION_MODELS`.
         durations: segment-length distribution of every texton on ``[tmin, tmax]``:
             ``"lognormal"`` (default: a discretised log-normal fitted in the M-step, mixed
             with 1 % of the flat one) or ``"flat"`` (the paper). With ``tmax=None`` the
             durations are flat.
-        selection: ``"bic"`` (default): after (at most 5 iterations of) EM, the textons with
+        selection: ``"aic"`` (default): after (at most 5 iterations of) EM, the textons with
             the fewest segments are removed (half of them at first, fewer when that does not
             pay; the clips segmented again and EM rerun for at most 5 iterations) while that
-            lowers ``BIC = −2 log P(Y, H) + p log n``, until removing a single texton does not;
-            EM then runs to convergence on the textons kept. The number of textons is chosen
-            by the data. ``"none"``: keep EM's textons (the paper).
-        dof: the dynamics innovations of full-dimensional textons (``k = D``, the
-            ``"full"`` model, which is also what BIC chooses on the salsa clips): Student-t
+            lowers ``AIC = −2 log P(Y, H) + 2p``, until removing a single texton does not; EM
+            then runs to convergence on the textons kept. ``p`` counts the tied model's shrunk
+            covariances by their effective number of parameters (design §10.10). The number of
+            textons is chosen by the data: AIC estimates the held-out log-likelihood, and on
+            folds of the training clips it kept the textons that generalise (design §10.10).
+            ``"bic"``: the same with ``p log n`` (fewer textons). ``"none"``: keep EM's
+            textons (the paper).
+        dof: the dynamics innovations of full-dimensional textons (``k = D``: the
+            ``"tied"`` and ``"full"`` models): Student-t
             with ``ν = dof`` degrees of freedom (default 4; see :class:`Texton`), or
             Gaussian (``None``, the paper). Each M-step fits the t by iteratively reweighted
             least squares and the E-step scores frames by the t density: capture glitches
@@ -90,22 +97,21 @@ class LearnConfig:
         innovations: the innovations of synthesis. ``"residuals"`` (default):
             :func:`synthesize` replays blocks of the training residuals themselves (a
             :class:`ResidualBank`, a block bootstrap: each texton on a path replays the
-            whitened residuals of one of its own training segments); on the held-out clips
-            of the salsa split, acceleration and jerk distances 1.46× and 1.27× the
-            real-vs-real floor instead of 2.32× and 2.73× (``benchmarks/results/quality.md``).
-            The model file then holds the residuals (4 MB on the 10 training clips).
+            whitened residuals of one of its own training segments; design §10.8). The model
+            file then holds the residuals.
             ``"fitted"``: an :class:`InnovationProcess`, whose autocorrelation at lags 1–4
             and persistence of the Student-t scale are estimated on the training residuals;
             synthesis draws innovations with the same per-frame law and those dependences
             (also fitted with ``"residuals"``, for :func:`synthesize_texton`). ``"white"``:
             independent from frame to frame (the paper). The likelihood is that of
             independent innovations in every case.
-        init: the initial segmentation. ``"greedy"`` (default): the greedy segmentation of
-            MT §4 (``threshold``). ``"chunks"``: every clip cut into chunks of
-            ``chunk_frames`` frames, clustered by k-means on their mean frames into
-            ``n_textons`` (default 16) textons (design §10.10), for tied textons with
-            ``selection="none"``: EM's pruning of rare textons then sets their number.
-        chunk_frames: the chunk length of ``init="chunks"``, within ``[tmin, tmax]``.
+        init: the initial segmentation. ``"chunks"`` (default): every clip cut into chunks
+            of ``chunk_frames`` frames, clustered by k-means on their mean frames into
+            ``n_textons`` textons (default: one per 4 chunks; design §10.10); EM's pruning of
+            rare textons and the selection then set their number. ``"greedy"``: the greedy
+            segmentation of MT §4 (``threshold``).
+        chunk_frames: the chunk length of ``init="chunks"`` (default 80), clipped to
+            ``[tmin, tmax]`` (:attr:`chunk_length`).
         min_segments: prune textons that the segmentation gives fewer training segments: after
             each E-step they are removed (``M``, ``π`` renormalised) and the clips segmented
             again by the remaining textons, which EM then refits (a texton fitted on one
@@ -130,12 +136,12 @@ class LearnConfig:
     shard: bool | None = None
     bic_thresholds: tuple[float, ...] | None = None
     min_segments: int = 3
-    observation: str = "residual"
+    observation: str = "tied"
     durations: str = "lognormal"
-    selection: str = "bic"
+    selection: str = "aic"
     dof: float | None = 4.0
     innovations: str = "residuals"
-    init: str = "greedy"
+    init: str = "chunks"
     chunk_frames: int = 80
 
     def __post_init__(self) -> None:
@@ -163,9 +169,9 @@ class LearnConfig:
             raise ValueError(
                 f"LearnConfig.chunk_frames must be an integer, got {self.chunk_frames!r}"
             )
-        if self.selection not in ("bic", "none"):
+        if self.selection not in ("bic", "aic", "none"):
             raise ValueError(
-                f"LearnConfig.selection must be 'bic' or 'none', got {self.selection!r}"
+                f"LearnConfig.selection must be 'bic', 'aic' or 'none', got {self.selection!r}"
             )
         if self.innovations not in ("fitted", "white", "residuals"):
             raise ValueError(
@@ -204,6 +210,19 @@ class LearnConfig:
             )
         if self.fps is not None and not self.fps > 0:
             raise ValueError(f"LearnConfig.fps must be positive, got {self.fps!r}")
+        check_config_limits(self)  # sizes within the limits of mtex_jax.core, reals finite
+        if self.init == "chunks" and (self.threshold is not None or self.bic_thresholds):
+            raise ValueError(
+                "LearnConfig.threshold and bic_thresholds belong to the greedy initialisation: "
+                "give init='greedy' with them (the default init='chunks' has no threshold)"
+            )
+
+    @property
+    def chunk_length(self) -> int:
+        """The chunk length ``init="chunks"`` uses: ``chunk_frames`` clipped to
+        ``[tmin, tmax]``."""
+        hi = self.tmax if self.tmax is not None else max(self.chunk_frames, self.tmin)
+        return min(max(self.chunk_frames, self.tmin), hi)
 
     @property
     def texton_dof(self) -> float | None:

@@ -14,7 +14,7 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, Float, Int
 
-from ..core import load_arrays_json, save_arrays_json
+from ..core import check_real, load_arrays_json, save_arrays_json
 from ..motion import FeatureMap, Motion
 from ._config import LearnConfig
 from ._noise.innovation_process import InnovationProcess
@@ -23,6 +23,7 @@ from ._segmentation.forward import log_likelihood
 from ._segmentation.segment import Segmentation, segment
 from ._texton.texton import Texton
 from ._texton.validate import TEXTURE_MEMBERS, check_texture_arrays
+from ._vocabulary import Vocabulary, vocabulary
 
 FORMAT_VERSION = 1
 _KIND = "mtex_jax.MotionTexture"
@@ -110,6 +111,12 @@ class MotionTexture(eqx.Module):
     @property
     def obs_dim(self) -> int:
         return int(np.shape(self.textons.mu)[-1])
+
+    def summary(self) -> Vocabulary:
+        """The vocabulary as data (:class:`Vocabulary`): per texton its training segments,
+        frames, mean duration, self-transition and successors (``M[i, j] ≥ 0.1``);
+        ``print(tex.summary())`` shows it as a table."""
+        return vocabulary(self)
 
     def length_stats(self) -> np.ndarray:
         """Per texton: ``(count, mean, std, min, max)`` of its training segment lengths."""
@@ -201,6 +208,8 @@ class MotionTexture(eqx.Module):
             arrays["residuals.starts"] = np.asarray(self.residuals.starts)
             arrays["residuals.lengths"] = np.asarray(self.residuals.lengths)
             arrays["residuals.labels"] = np.asarray(self.residuals.labels)
+            if self.residuals.segments is not None:
+                arrays["residuals.segments"] = np.asarray(self.residuals.segments)
         meta: dict[str, Any] = {
             "kind": _KIND,
             "format_version": FORMAT_VERSION,
@@ -281,7 +290,7 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
             innovations=_innovations_of(arrays),
             residuals=_residuals_of(arrays),
             config=cfg,
-            threshold=float(meta["threshold"]),
+            threshold=check_real(meta["threshold"], "threshold", low=0.0),
         )
     except (KeyError, TypeError, ValueError, AttributeError, OverflowError, IndexError) as e:
         raise ValueError(f"{path}: invalid motion texture file: {e}") from None
@@ -314,6 +323,9 @@ def _residuals_of(arrays: dict[str, np.ndarray]) -> ResidualBank | None:
         starts=jnp.asarray(arrays["residuals.starts"]),
         lengths=jnp.asarray(arrays["residuals.lengths"]),
         labels=jnp.asarray(arrays["residuals.labels"]),
+        segments=(
+            jnp.asarray(arrays["residuals.segments"]) if "residuals.segments" in arrays else None
+        ),
     )
 
 

@@ -208,6 +208,23 @@ def threshold_for_textons(
     return best[1], best[2], best[3]
 
 
+#: Chunks per initial texton of ``init="chunks"`` without ``n_textons``: the initial
+#: vocabulary grows with the data, and the selection (design §10.10) then removes the textons
+#: that do not pay.
+CHUNKS_PER_TEXTON = 4
+
+#: At most this many initial textons (the first E-steps' cost grows with them; 64 is one per
+#: 4 chunks of 20,480 frames).
+MAX_INITIAL_TEXTONS = 64
+
+
+def initial_textons(ys: Sequence[np.ndarray], chunk: int) -> int:
+    """The initial number of textons of ``init="chunks"``: one per ``CHUNKS_PER_TEXTON``
+    chunks of ``chunk`` frames, at least 1 and at most ``MAX_INITIAL_TEXTONS``."""
+    n_chunks = sum(max(y.shape[0] // chunk, 1) for y in ys)
+    return min(MAX_INITIAL_TEXTONS, max(1, round(n_chunks / CHUNKS_PER_TEXTON)))
+
+
 def chunk_init(
     ys: Sequence[np.ndarray], config: LearnConfig, n_textons: int, chunk: int, seed: int = 0
 ) -> Segs:

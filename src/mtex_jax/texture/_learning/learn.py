@@ -38,7 +38,14 @@ from .._observation import FullObservation, observation_model
 from .._segmentation.segment import check_lengths
 from .._texton.select import choose_state_dim, n_params
 from .em import PAD_E_STEP, Capacity, Runner
-from .init import Segs, chunk_init, feasible, greedy_init, threshold_for_textons
+from .init import (
+    Segs,
+    chunk_init,
+    feasible,
+    greedy_init,
+    initial_textons,
+    threshold_for_textons,
+)
 from .labels import capacity_for, keep_textons
 from .loop import EM, EMSettings, run_em
 
@@ -267,7 +274,7 @@ def em_and_selection(
     Returns:
         The model of the last EM run.
     """
-    if config.selection != "bic":
+    if config.selection == "none":
         return run_em(EM(run, config), segs, threshold, settings, prune_initial=True)
     short = EM(run, _refit_config(config))
     model = run_em(short, segs, threshold, settings, prune_initial=True)
@@ -286,8 +293,10 @@ def greedy_segments(
     that gives ``config.n_textons``, or 0.3)."""
     if config.init == "chunks":
         threshold = 0.0 if config.threshold is None else float(config.threshold)
-        n_init = 16 if config.n_textons is None else config.n_textons
-        segs = chunk_init(ys, config, n_init, config.chunk_frames)
+        n_init = config.n_textons
+        if n_init is None:
+            n_init = initial_textons(ys, config.chunk_length)
+        segs = chunk_init(ys, config, n_init, config.chunk_length)
     elif config.threshold is not None:
         threshold = float(config.threshold)
         segs, _ = greedy_init(ys, config, threshold)
@@ -305,18 +314,32 @@ def greedy_segments(
     return threshold, segs
 
 
-def bic_parts(model: MotionTexture, n_frames: int) -> tuple[float, int, float]:
+def bic_parts(model: MotionTexture, n_frames: int) -> tuple[float, float, float]:
     """``(log P(Y, H), p, BIC)`` of a learned model: its best EM objective, its number of free
     parameters and ``−2 log P(Y, H) + p log n``."""
     cfg = model.config
     assert cfg.state_dim is not None
     ll = float(np.asarray(model.history)[:, 1].max())
-    p = n_params(model.n_textons, model.obs_dim, cfg.state_dim, cfg.observation, cfg.durations)
+    p = n_params(
+        model.n_textons,
+        model.obs_dim,
+        cfg.state_dim,
+        cfg.observation,
+        cfg.durations,
+        np.asarray(model.segments),
+    )
     return ll, p, -2 * ll + p * math.log(n_frames)
 
 
-def _model_bic(model: MotionTexture, n_frames: int) -> float:
-    return bic_parts(model, n_frames)[2]
+def penalty_weight(config: LearnConfig, n_frames: int) -> float:
+    """The price of one free parameter in ``−2 log P(Y, H) + w p`` (design §4.7): ``log n``
+    for ``selection="bic"``, 2 for ``"aic"``."""
+    return math.log(n_frames) if config.selection == "bic" else 2.0
+
+
+def _model_criterion(model: MotionTexture, n_frames: int, w: float) -> float:
+    ll, p, _ = bic_parts(model, n_frames)
+    return -2 * ll + w * p
 
 
 def _backward_bic(
@@ -350,7 +373,9 @@ def _backward_bic(
         again.
     """
     n = run.n_frames
-    best, best_bic = model, _model_bic(model, n)
+    w = penalty_weight(config, n)
+    name = config.selection.upper()
+    best, best_bic = model, _model_criterion(model, n, w)
     m_cap = capacity_for(best.n_textons)
     capacity = Capacity(m_step=m_cap)
     short = _refit_config(config)
@@ -370,19 +395,19 @@ def _backward_bic(
         segs, score = run.e_step(tex, M, pi, log_d, capacity)
         cfg = best.config
         assert cfg.state_dim is not None
-        p = n_params(len(keep), best.obs_dim, cfg.state_dim, cfg.observation, cfg.durations)
-        bound = -2 * score + p * math.log(n)
+        p = n_params(len(keep), best.obs_dim, cfg.state_dim, cfg.observation, cfg.durations, segs)
+        bound = -2 * score + p * w
         b, cand = bound, None
         if bound < best_bic:  # refit only when it can pay
             quiet = dataclasses.replace(settings, verbose=False, t0=t0)
             refit = EM(run, short, capacity)
             cand = run_em(refit, segs, best.threshold, quiet, prev=tex)
             cand = dataclasses.replace(cand, config=config) if cand.config != config else cand
-            b = _model_bic(cand, n)
+            b = _model_criterion(cand, n, w)
         if settings.verbose:
             what = "before refitting" if bound >= best_bic else "refitted"
             print(
-                f"[mtex learn] BIC selection: {best.n_textons} textons {best_bic:.6g}; "
+                f"[mtex learn] {name} selection: {best.n_textons} textons {best_bic:.6g}; "
                 f"without {m} ({what}) {b:.6g}  {time.perf_counter() - t0:.1f} s",
                 flush=True,
             )
@@ -393,7 +418,7 @@ def _backward_bic(
         else:
             m //= 2
     if settings.verbose:
-        print(f"[mtex learn] BIC selection: keep {best.n_textons} textons", flush=True)
+        print(f"[mtex learn] {name} selection: keep {best.n_textons} textons", flush=True)
     return best, capacity
 
 

@@ -13,9 +13,8 @@ quality split, 60 Hz, the default texture):
   and 0.31 at 15. Calm stretches and bursts last, where independent scales
   average out within a few frames.
 
-Synthesis from white innovations is therefore too jerky and too uniformly busy (on the training
-clips, per-joint W₁ of ``|a|`` 4.10 m/s² and of ``|j|`` 499 m/s³ against the training clips
-themselves; 2.66 and 331 with the process below). An :class:`InnovationProcess` keeps the
+Synthesis from white innovations is therefore too jerky and too uniformly busy (design §10.8;
+the documentation's results page has the figures). An :class:`InnovationProcess` keeps the
 per-frame law of the innovations and adds the two measured dependences:
 
 .. code-block:: text

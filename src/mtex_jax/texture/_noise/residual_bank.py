@@ -11,8 +11,27 @@ keeps the residuals themselves, and synthesis replays them in blocks:
     u_t = B_i⁻¹ (x_t − A1_i x_{t−1} − A2_i x_{t−2} − d_i),   x = C_iᵀ (y − μ_i)
 
 for the frames ``a + 2 … a + n − 1`` of every training segment ``(clip, a, n, i)``, in order.
-A texton on a synthesis path draws one of its own segments uniformly and replays its
-residuals from the first, cyclically when it needs more rows than the segment has.
+A texton on a synthesis path replays the residuals of one of its own segments from the
+first, cyclically when it needs more rows than the segment has: by default (*aligned*) those
+of the training segment whose key poses it starts from, so that the innovations meet the
+state they were measured in; otherwise (*shuffled*, and where that segment is not in the
+bank) a segment of the texton drawn uniformly.
+
+Why aligned. Replayed from another segment's start, a block keeps its law and colour but not
+its alignment with the state, and real residuals are not independent of the state (the
+linear dynamics leave part of the dance's state feedback in them, design §10.8). The texton
+then follows the source segment plus the free response of the dynamics to the difference of
+the two starts, and with a spectral radius near 1 a velocity difference persists over the
+whole texton: the shuffled replay of the training clips through their own segmentation is
+4.3 times the real-vs-real floor in joint speed (the documentation's results page), although
+its innovations are real ones. Root translation and legs drift apart, so feet skate.
+On three folds of the training clips of the quality split (learn on 7, judge against the
+other 3; the default texture and synthesis, 8 syntheses of 20 s) the aligned replay brings
+the foot-skating median from 0.76 to 0.48 m/s (real: about 0.2) and the joint-speed distance
+from 2.8 to 2.1 times the real-vs-real floor, acceleration and jerk unchanged (1.29 → 1.19,
+1.05 → 1.09); its cost is more copying (share of verbatim steps 0.33 → 0.56, longest run
+1.1 → 1.9 s): a texton replays its source segment's innovations, bent to its end poses by
+the constraint.
 
 Capture glitches are residuals the texton's own law calls impossible (a hand channel off by
 0.3 rad for one frame is hundreds of standard deviations): a segment with a frame whose
@@ -22,12 +41,12 @@ frame in a million) is left out of the bank, unless all of its texton's segments
 the one with the smallest largest ``q`` stays). Replayed, such a glitch is no longer cancelled
 by the frames around it and throws the motion off for the rest of the texton.
 
-This is the residual (block) bootstrap of time-series statistics: nothing is estimated, and
-the draws keep every property of real innovations except their alignment with the state they
-were measured in. On the quality split (``benchmarks/results/quality.md``) it brings the
-acceleration and, most of all, jerk distances of constrained synthesis closer to real motion
-than the fitted process; the table there also lists its costs (more frame-to-frame jumps, a
-larger speed distance).
+This is the residual (block) bootstrap of time-series statistics: nothing is estimated, and the
+shuffled draws keep every property of real innovations except their alignment with the state
+they were measured in (design §10.8), which the aligned replay keeps as well. On the quality
+split it brings the acceleration and, most of all, jerk distances of constrained synthesis
+closer to real motion than the fitted process, at the cost of more frame-to-frame jumps and a
+larger speed distance (the documentation's results page).
 """
 
 from __future__ import annotations
@@ -65,12 +84,15 @@ class ResidualBank(eqx.Module):
         starts: ``(s,)`` the first row of each kept segment.
         lengths: ``(s,)`` its number of rows (``≥ 1``).
         labels: ``(s,)`` its texton.
+        segments: ``(s,)`` the row of the segmentation (:attr:`MotionTexture.segments`) it
+            was measured on, or ``None`` when unknown (then only shuffled replay is possible).
     """
 
     rows: Float[Array, "R k"]
     starts: Int[Array, " s"]
     lengths: Int[Array, " s"]
     labels: Int[Array, " s"]
+    segments: Int[Array, " s"] | None = None
 
     def __check_init__(self) -> None:
         r = np.shape(self.rows)
@@ -81,6 +103,11 @@ class ResidualBank(eqx.Module):
             raise ValueError(
                 "ResidualBank.starts, .lengths and .labels must have one shape (s >= 1,), "
                 f"got {s}, {n}, {lab}"
+            )
+        if self.segments is not None and np.shape(self.segments) != s:
+            raise ValueError(
+                f"ResidualBank.segments must have the shape of .starts {s}, "
+                f"got {np.shape(self.segments)}"
             )
         if not any(isinstance(a, Tracer) for a in (self.starts, self.lengths, self.labels)):
             st, ln = np.asarray(self.starts), np.asarray(self.lengths)
@@ -144,8 +171,14 @@ def residual_bank(
                 f"residual_bank: segment ({c}, {a}, {n}) lies outside clip {c} "
                 f"({len(clips[c])} frames)"
             )
-    segs = segs[segs[:, 2] >= 3]  # shorter segments have no residual
-    return plausible_bank(segment_innovations(textons, clips, segs), segs[:, 3], textons.dof, tail)
+    # segments shorter than 3 frames have no residual (an empty block keeps the numbering)
+    full = segs[:, 2] >= 3
+    res = [np.zeros((0, int(np.shape(textons.C)[-1])))] * len(segs)
+    for j, r in zip(
+        np.flatnonzero(full), segment_innovations(textons, clips, segs[full]), strict=True
+    ):
+        res[int(j)] = r
+    return plausible_bank(res, segs[:, 3], textons.dof, tail)
 
 
 def plausible_bank(
@@ -153,7 +186,8 @@ def plausible_bank(
 ) -> ResidualBank:
     """The bank of the segments' whitened residuals ``(n_s − 2, k)`` (empty for segments
     shorter than 3 frames) and their texton ``labels``: the plausibility rule of the module
-    docstring, then the kept segments stacked."""
+    docstring, then the kept segments stacked. ``residuals[j]`` is segment ``j`` of the
+    segmentation (:attr:`ResidualBank.segments` records it)."""
     full = [i for i, r in enumerate(residuals) if len(r) > 0]
     if not full:
         raise ValueError("residual_bank: no segment of 3 frames or more")
@@ -173,15 +207,22 @@ def plausible_bank(
         starts=jnp.asarray(np.cumsum(lengths) - lengths),
         lengths=jnp.asarray(lengths),
         labels=jnp.asarray(labels[keep]),
+        segments=jnp.asarray(np.asarray(full, dtype=np.int64)[keep]),
     )
 
 
-def _draw_impl(key: Array, bank: ResidualBank, labels: Array, length: int) -> Array:
+def _draw_impl(
+    key: Array, bank: ResidualBank, labels: Array, length: int, instances: Array | None = None
+) -> Array:
     match = bank.labels[None, :] == labels[:, None]  # (n, s)
     # a texton without a segment of its own (not made by learn) draws from every segment
     allowed = match | ~match.any(axis=1, keepdims=True)
     logits = jnp.where(allowed, 0.0, -jnp.inf)
     choice = jax.random.categorical(key, logits, axis=-1)
+    if instances is not None and bank.segments is not None:
+        # aligned: the bank segment measured on the block's own training segment, if kept
+        own = (bank.segments[None, :] == instances[:, None]) & match & (instances[:, None] >= 0)
+        choice = jnp.where(own.any(axis=1), jnp.argmax(own, axis=1), choice)
     offset = jnp.arange(length)[None, :] % bank.lengths[choice][:, None]
     return bank.rows[bank.starts[choice][:, None] + offset]
 
@@ -190,13 +231,22 @@ _draw = eqx.filter_jit(_draw_impl)
 
 
 def draw_residuals(
-    key: Array, bank: ResidualBank, labels: Int[ArrayLike, " n"], length: int, dtype=None
+    key: Array,
+    bank: ResidualBank,
+    labels: Int[ArrayLike, " n"],
+    length: int,
+    dtype=None,
+    instances: Int[ArrayLike, " n"] | None = None,
 ) -> Float[Array, "n length k"]:
     """One block of ``length`` rows for each texton of ``labels``.
 
-    Block ``m`` replays the residuals of a training segment of texton ``labels[m]``, drawn
-    uniformly and independently for each ``m``, from its first row, cyclically (module
-    docstring). Jit-compiled; calls with the same shapes do not recompile.
+    Block ``m`` replays the residuals of a training segment of texton ``labels[m]`` from its
+    first row, cyclically (module docstring): with ``instances`` (aligned replay), those of
+    segment ``instances[m]`` of the segmentation (the one whose key poses block ``m``
+    starts from) when the bank keeps it and it is a segment of ``labels[m]``; otherwise, and
+    without ``instances`` or for a bank without :attr:`ResidualBank.segments`, a segment
+    drawn uniformly and independently for each ``m``. Jit-compiled; calls with the same
+    shapes do not recompile.
 
     Args:
         key: JAX PRNG key.
@@ -204,6 +254,8 @@ def draw_residuals(
         labels: ``(n,)`` texton labels.
         length: rows per block (static).
         dtype: of the result (default the bank's).
+        instances: ``(n,)`` rows of :attr:`MotionTexture.segments` (``-1``: none), or
+            ``None`` (shuffled replay).
 
     Returns:
         ``(n, length, k)`` innovations.
@@ -222,5 +274,13 @@ def draw_residuals(
         )
     if isinstance(length, bool) or not isinstance(length, int | np.integer) or length < 1:
         raise ValueError(f"draw_residuals: length must be a positive integer, got {length!r}")
-    out = _draw(key, bank, lab, int(length))
+    inst = None
+    if instances is not None:
+        inst = jnp.asarray(instances)
+        if inst.shape != lab.shape or not jnp.issubdtype(inst.dtype, jnp.integer):
+            raise ValueError(
+                f"draw_residuals: instances must be {lab.shape[0]} integers, got {inst.shape} "
+                f"{inst.dtype}"
+            )
+    out = _draw(key, bank, lab, int(length), inst)
     return out if dtype is None else out.astype(dtype)

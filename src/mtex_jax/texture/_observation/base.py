@@ -71,10 +71,12 @@ class ObservationModel:
             )
         return dof
 
-    def n_params(self, n_t: int, D: int, k: int) -> int:
+    def n_params(self, n_t: int, D: int, k: int, frames: Any = None, starts: Any = None) -> float:
         """Free parameters of ``n_t`` textons (for BIC, design §4.7): per texton ``μ`` D,
         ``C`` Dk − k(k+1)/2, ``A1, A2`` 2k², ``d`` k, ``Q`` k(k+1)/2, ``σ²`` 1, ``m0`` 2k,
-        ``S0`` k(2k+1), plus :meth:`extra_params`."""
+        ``S0`` k(2k+1), plus :meth:`extra_params`. ``frames`` and ``starts`` (each texton's
+        dynamics terms and segments) are for models whose estimates are shrunk, whose
+        effective number of parameters depends on them; unshrunk models ignore them."""
         per = D + (D * k - k * (k + 1) // 2) + 2 * k * k + k + k * (k + 1) // 2 + 1 + 2 * k
         per += k * (2 * k + 1)
         return n_t * (per + self.extra_params(D, k))

@@ -31,12 +31,13 @@ rotated back, so a tied texton is an ordinary full :class:`~mtex_jax.texture.Tex
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+import numpy as np
 from jaxtyping import Array
 
 from .._texton.checks import project_radius, psd_cholesky, sym
@@ -64,13 +65,29 @@ class TiedObservation(FullObservation):
 
     name: ClassVar[str] = "tied"
 
-    def n_params(self, n_t: int, D: int, k: int) -> int:
+    def n_params(self, n_t: int, D: int, k: int, frames: Any = None, starts: Any = None) -> float:
         """Shared ``A1, A2`` (``2D²``) and ``Q̄`` (``D(D+1)/2``) once; per texton ``d`` (D),
-        the shrunk ``Q_i`` (counted in full, ``D(D+1)/2``) and the initial two-frame Gaussian
-        (``2D + D(2D+1)``)."""
+        ``m0`` (2D), the shrunk ``Q_i`` and ``S0`` (design §10.10).
+
+        A shrunk estimate ``(S_i + ν₀ Q̄) / (N_i + ν₀)`` follows its own data with the weight
+        ``N_i / (N_i + ν₀)``: that is its effective number of parameters per entry (the trace
+        of the map from the texton's data to its estimate, as for a ridge or a conjugate
+        hierarchical model). With ``frames`` (each texton's dynamics terms ``N_i``) and
+        ``starts`` (its segments), ``Q_i`` counts ``D(D+1)/2 · N_i/(N_i+ν₀)`` and ``S0``
+        ``D(2D+1) · s_i/(s_i+κ)``; without them, in full."""
         shared = 2 * D * D + D * (D + 1) // 2
-        per = D + D * (D + 1) // 2 + 2 * D + D * (2 * D + 1)
-        return shared + n_t * per
+        n_q, n_s0 = D * (D + 1) // 2, D * (2 * D + 1)
+        if frames is None or starts is None:
+            return float(shared + n_t * (D + 2 * D + n_q + n_s0))
+        N = np.asarray(frames, dtype=np.float64)
+        s = np.asarray(starts, dtype=np.float64)
+        if N.shape != (n_t,) or s.shape != (n_t,):
+            raise ValueError(
+                f"n_params: frames and starts need one entry per texton ({n_t}), "
+                f"got shapes {N.shape} and {s.shape}"
+            )
+        eff = n_q * N / (N + IW_FRAMES) + n_s0 * s / (s + INIT_STARTS)
+        return float(shared + n_t * 3 * D + np.sum(eff))
 
     def solve(
         self,

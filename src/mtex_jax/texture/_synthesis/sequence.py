@@ -16,9 +16,11 @@ A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthe
    reprojected into its own subspace, ``x = C_{ℓ_m}ᵀ(K_{m+1} − μ_{ℓ_m})`` (MT §5.4,
    :func:`~mtex_jax.texture.synthesize_texton`). The last two frames are dropped, because
    they are the first two frames of texton ``m + 1``: shared frames appear once. The
-   innovations of each texton are drawn from the texture's
-   :class:`~mtex_jax.texture.InnovationProcess` (autocorrelated, with a persistent
-   Student-t scale), or independently when it has none.
+   innovations of each texton replay the training residuals of the segment whose key poses
+   it starts from (the texture's :class:`~mtex_jax.texture.ResidualBank`, aligned replay;
+   ``replay="shuffled"``: another segment of the texton, drawn at random), or are drawn
+   from its :class:`~mtex_jax.texture.InnovationProcess` (autocorrelated, with a
+   persistent Student-t scale), or independently when it has neither.
 3. The last texton is held, the same way, at the key poses of a successor drawn from
    ``M[ℓ_n, ·]`` that is not output — or, for the choreographer, at the requested end pose in
    its own last two frames. No texton runs free, so an unstable texton (spectral radius > 1)
@@ -42,7 +44,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ...core import MAX_GENERATED_FRAMES, check_count, check_key
+from ...core import MAX_GENERATED_FRAMES, check_count, check_key, check_size
 from ...motion import Motion
 from .._model import MotionTexture
 from .._noise.draws import independent_innovations
@@ -57,6 +59,7 @@ _PAD_TEXTONS = 8  # the path axis is padded to a multiple of this (compilation s
 _PAD_FRAMES = 16  # and the per-texton length to a multiple of this
 
 Residual = Literal["blend", "subspace"]
+Replay = Literal["aligned", "shuffled"]
 
 
 class Synthesis(eqx.Module):
@@ -114,11 +117,13 @@ def check_texture(texture: MotionTexture) -> None:
         )
 
 
-def check_options(weighting: Any, residual: Any) -> None:
+def check_options(weighting: Any, residual: Any, replay: Any = "aligned") -> None:
     if weighting not in ("whitened", "paper"):
         raise ValueError(f"weighting must be 'whitened' or 'paper', got {weighting!r}")
     if residual not in ("blend", "subspace"):
         raise ValueError(f"residual must be 'blend' or 'subspace', got {residual!r}")
+    if replay not in ("aligned", "shuffled"):
+        raise ValueError(f"replay must be 'aligned' or 'shuffled', got {replay!r}")
 
 
 def _draw_durations(key: Array, texture: MotionTexture, path: np.ndarray) -> np.ndarray:
@@ -154,6 +159,11 @@ def check_lengths(lengths: Any, n: int) -> np.ndarray:
         raise ValueError(
             f"lengths must be {n} integers (one per texton), got {arr.dtype} {arr.shape}"
         )
+    longest = int(arr.max()) if arr.size else 0
+    check_size(longest, "synthesize: a texton's length", "MAX_GENERATED_FRAMES")
+    check_size(
+        int(arr.astype(np.int64).sum()), "synthesize: sum of lengths", "MAX_GENERATED_FRAMES"
+    )
     return arr.astype(np.int64)
 
 
@@ -236,8 +246,14 @@ def synthesize_path(
     end_in_output: bool,
     weighting: str,
     residual: str,
+    replay: str = "aligned",
 ) -> Array:
-    """Observations ``(Σ lengths, D)`` of a planned path (see the module docstring)."""
+    """Observations ``(Σ lengths, D)`` of a planned path (see the module docstring).
+
+    ``seg_idx`` are the key-pose instances (rows of ``texture.segments``); with
+    ``replay="aligned"`` each texton replays the residuals of its own instance (not the
+    first one's when ``start`` replaces its key poses).
+    """
     n = path.size
     tex = texture.textons
     dt = tex.mu.dtype
@@ -264,7 +280,12 @@ def synthesize_path(
     if key is None:
         v = jnp.zeros((n_pad, l_pad - 2, k), dt)
     elif texture.residuals is not None:  # blocks of the training residuals
-        v = draw_residuals(key, texture.residuals, jnp.asarray(lab_p), l_pad - 2, dt)
+        inst = None
+        if replay == "aligned":
+            inst = np.concatenate([seg_idx, np.full(pad, -1)]).astype(np.int32)
+            if start is not None:  # the given start is not the instance's state
+                inst[0] = -1
+        v = draw_residuals(key, texture.residuals, jnp.asarray(lab_p), l_pad - 2, dt, inst)
     elif texture.innovations is None:
         v = independent_innovations(key, (n_pad, l_pad - 2, k), dt, tex.dof)
     else:  # each texton's stretch of innovations from the fitted process
@@ -327,6 +348,7 @@ def synthesize(
     residual: Residual = "blend",
     decode: bool = True,
     lengths_from: str = "durations",
+    replay: Replay = "aligned",
 ) -> Synthesis:
     """Synthesise a new motion from a motion texture (MT §5; design §5).
 
@@ -367,6 +389,13 @@ def synthesize(
             (``MotionTexture.log_durations``, ``LearnConfig.durations="lognormal"``), drawn
             with ``key``; ``"segments"``: the training segment of the texton's key poses
             (the paper). A texture with flat durations, or ``key=None``, uses the segments.
+        replay: for a texture with a :class:`~mtex_jax.texture.ResidualBank` (the default
+            innovations): ``"aligned"`` (default): each texton replays the residuals of the
+            training segment whose key poses it starts from, in the state they were measured
+            in (design §10.8); ``"shuffled"``: those of a segment of the texton drawn at
+            random (the residual block bootstrap without alignment: faster motion, more
+            foot skating, less copying). The first texton of a synthesis with a given
+            ``start``, and a segment the bank left out, draw at random.
 
     Returns:
         a :class:`Synthesis` (observations, path, lengths, starts, decoded motion).
@@ -376,7 +405,7 @@ def synthesize(
     """
     check_key(key, "synthesize", allow_none=True)
     check_texture(texture)
-    check_options(weighting, residual)
+    check_options(weighting, residual, replay)
     if lengths_from not in ("durations", "segments"):
         raise ValueError(f"lengths_from must be 'durations' or 'segments', got {lengths_from!r}")
     n_t = texture.n_textons
@@ -418,6 +447,7 @@ def synthesize(
         path_np = np.asarray(path)
         if path_np.ndim != 1 or path_np.size < 1 or not np.issubdtype(path_np.dtype, np.integer):
             raise ValueError(f"path must be a non-empty 1-D integer array, got {path_np.shape}")
+        check_size(path_np.size, "synthesize: textons on the path", "MAX_PATH_TEXTONS")
         if (path_np < 0).any() or (path_np >= n_t).any():
             raise ValueError(f"path has labels outside [0, {n_t})")
         path_np = path_np.astype(np.int64)
@@ -446,7 +476,17 @@ def synthesize(
     # so none runs free (unstable textons diverge)
     end_np = np.asarray(texture.key_poses)[succ_seg]
     Y = synthesize_path(
-        texture, k_noise, path_np, lens, seg_idx, start_np, end_np, False, weighting, residual
+        texture,
+        k_noise,
+        path_np,
+        lens,
+        seg_idx,
+        start_np,
+        end_np,
+        False,
+        weighting,
+        residual,
+        replay,
     )
     seg_out = seg_idx.copy()
     if start_np is not None:

@@ -30,7 +30,14 @@ __all__ = ["choose_state_dim", "n_params"]
 LOG_2PI = math.log(2 * math.pi)
 
 
-def n_params(n_t: int, D: int, k: int, observation: str = "paper", durations: str = "flat") -> int:
+def n_params(
+    n_t: int,
+    D: int,
+    k: int,
+    observation: str = "paper",
+    durations: str = "flat",
+    segments: np.ndarray | None = None,
+) -> float:
     """Free parameters of a motion texture with ``n_t`` textons (for BIC, design §4.7).
 
     The textons' parameters are the observation model's count
@@ -38,8 +45,18 @@ def n_params(n_t: int, D: int, k: int, observation: str = "paper", durations: st
     2k², ``d`` k, ``Q`` k(k+1)/2, ``σ²`` 1, ``m0`` 2k, ``S0`` k(2k+1), the residual AR(2) 3
     more); log-normal durations 2 more per texton; plus ``n_t(n_t − 1)`` transition and
     ``n_t − 1`` initial probabilities.
+
+    ``segments`` (rows ``(clip, start, length, label)`` of the segmentation) give each
+    texton's dynamics terms and segments to a model whose estimates are shrunk (the tied
+    model, design §10.10), which then counts its effective parameters.
     """
-    p = observation_model(observation).n_params(n_t, D, k)
+    frames = starts = None
+    if segments is not None:
+        seg = np.asarray(segments).reshape(-1, 4)
+        lab = seg[:, 3].astype(np.int64)
+        starts = np.bincount(lab, minlength=n_t)[:n_t].astype(np.float64)
+        frames = np.bincount(lab, weights=np.maximum(seg[:, 2] - 2, 0), minlength=n_t)[:n_t]
+    p = observation_model(observation).n_params(n_t, D, k, frames, starts)
     if durations == "lognormal":
         p += 2 * n_t
     return p + n_t * (n_t - 1) + n_t - 1
