@@ -25,6 +25,7 @@ _COMMANDS = (
     "_implicit",  # implicit-synth, track
     "_evaluate",  # evaluate
     "_edit",  # edit, contacts
+    "_view",  # view
 )
 
 

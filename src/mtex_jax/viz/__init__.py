@@ -1,7 +1,13 @@
 """Pictures: stick-figure GIFs (one motion, or two side by side) and filmstrips, texton
-timelines."""
+timelines, and a self-contained HTML page with a 3-D player (``write_html``)."""
 
 from ._compare import render_gif_pair as render_gif_pair
+from ._gallery import (
+    render_gallery as render_gallery,
+    render_texton_gallery as render_texton_gallery,
+    texton_instances as texton_instances,
+)
+from ._html import write_html as write_html
 from ._plots import (
     plot_timeline as plot_timeline,
 )
@@ -12,6 +18,10 @@ __all__ = [
     "plot_speed_distributions",
     "plot_timeline",
     "render_filmstrip",
+    "render_gallery",
     "render_gif",
     "render_gif_pair",
+    "render_texton_gallery",
+    "texton_instances",
+    "write_html",
 ]

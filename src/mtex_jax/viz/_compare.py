@@ -58,14 +58,16 @@ def render_gif_pair(
     nearest frame to each time ``k / fps``), so both play in real time.
 
     Args:
-        left, right: the two motions (e.g. a synthesised dance and a real clip).
+        left: the motion on the left (e.g. a synthesised dance).
+        right: the motion on the right (e.g. a real clip).
         path: output GIF; its folder must exist.
         titles: a caption above each panel.
         seconds: length of the animation in seconds.
         fps: playback rate (at most each motion's frame rate and at most 50).
         trajectories: joint names (present in both skeletons) whose paths are drawn.
         panel_size: inches per panel (square); ``dpi`` pixels per inch.
-        elev, azim: camera angles in degrees (as in :func:`render_gif`).
+        elev: camera elevation in degrees (as in :func:`render_gif`).
+        azim: camera azimuth in degrees (as in :func:`render_gif`).
         title: optional text at the top.
 
     Returns:
