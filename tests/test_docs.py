@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 import mtex_jax
+from names import resolves
 
 ROOT = Path(__file__).resolve().parents[1]
 API = ROOT / "docs" / "api"
@@ -70,21 +71,6 @@ def test_nav_holds_every_page():
         assert f"api/{sub}.md" in nav
 
 
-def _resolves(dotted: str) -> bool:
-    parts = dotted.split(".")
-    for i in range(len(parts), 0, -1):
-        try:
-            obj: object = importlib.import_module(".".join(parts[:i]))
-        except ImportError:
-            continue
-        for attr in parts[i:]:
-            if not hasattr(obj, attr):
-                return False
-            obj = getattr(obj, attr)
-        return True
-    return False
-
-
 def test_dotted_names_in_docs_resolve():
     """Every ``mtex_jax.…`` name in the README and the hand-written pages exists."""
     pages = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
@@ -93,7 +79,7 @@ def test_dotted_names_in_docs_resolve():
         if page.name == "results.md":  # generated from the benchmarks' reports
             continue
         for ref in re.findall(r"(?<![\w/])mtex_jax(?:\.\w+)+", page.read_text(encoding="utf-8")):
-            if not _resolves(ref.rstrip(".")):
+            if not resolves(ref.rstrip(".")):
                 problems.append(f"{page.relative_to(ROOT)}: {ref}")
     assert not problems, "\n".join(problems)
 

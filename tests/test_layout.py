@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 import mtex_jax
+from names import resolves
 
 SRC = Path(mtex_jax.__file__).resolve().parent
 
@@ -339,21 +340,6 @@ def test_design_references_resolve():
     assert not problems, "\n".join(problems)
 
 
-def _resolves(dotted: str) -> bool:
-    parts = dotted.split(".")
-    for i in range(len(parts), 0, -1):
-        try:
-            obj: object = importlib.import_module(".".join(parts[:i]))
-        except ImportError:
-            continue
-        for attr in parts[i:]:
-            if not hasattr(obj, attr):
-                return False
-            obj = getattr(obj, attr)
-        return True
-    return False
-
-
 def test_module_references_resolve():
     """Every dotted ``mtex_jax.…`` name in the source, tests and benchmarks names a module or
     an attribute that exists (no references into the old flat layout)."""
@@ -365,15 +351,15 @@ def test_module_references_resolve():
             continue
         # a quoted "mtex_jax.X" is a model-file kind or a package name, not a reference
         for ref in re.findall(r"(?<![\"'\w])mtex_jax(?:\.\w+)+", path.read_text()):
-            if not _resolves(ref):
+            if not resolves(ref):
                 problems.add(f"{path.relative_to(REPO)}: {ref}")
     assert not problems, "\n".join(sorted(problems))
 
 
 def test_reference_checks_can_fail():
-    assert _resolves("mtex_jax.texture.MotionTexture")
-    assert not _resolves("mtex_jax._learn.MotionTexture")
-    assert not _resolves("mtex_jax.texture._synthesis.no_such_name")
+    assert resolves("mtex_jax.texture.MotionTexture")
+    assert not resolves("mtex_jax._learn.MotionTexture")
+    assert not resolves("mtex_jax.texture._synthesis.no_such_name")
 
 
 def _dead_definitions() -> list[str]:
