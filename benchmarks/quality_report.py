@@ -123,7 +123,7 @@ def write(res: dict[str, Any], out: Path, seed: int) -> None:
     ]
     others = res.get("per_clip_others", {})
     if others:
-        L[-2] = L[-2][:-1] + "".join(f" {tag} / frame |" for tag in others)
+        L[-2] = L[-2] + "".join(f" {tag} / frame |" for tag in others)
         L[-1] = L[-1] + " ---: |" * len(others)
     for j, c in enumerate(res["per_clip"]):
         n = c["frames"]
