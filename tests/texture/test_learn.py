@@ -258,7 +258,8 @@ def test_sharded_learning_equals_single_device(tmp_path):
         rng = np.random.default_rng(11)
         Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=24)
         parts = [Y[:700], Y[700:1300], Y[1300:]]
-        base = dict(tmin=40, tmax=120, state_dim=4, threshold=0.5, max_iter=3, **UNTIED)
+        base = dict(tmin=40, tmax=120, state_dim=4, threshold=0.5, max_iter=3)
+        base.update(observation="residual", init="greedy")
         one = learn(parts, LearnConfig(**base, shard=False))
         two = learn(parts, LearnConfig(**base, shard=True))
         assert np.array_equal(np.asarray(one.segments), np.asarray(two.segments))
@@ -298,7 +299,8 @@ def test_learn_on_two_cpu_devices_finishes_and_equals_one(cmu_dir):
         d = os.environ["CMU_DIR"]
         clips = [mj.io.read_bvh(os.path.join(d, f"60_0{i}.bvh")).resample(60.0) for i in (1, 2)]
         base = dict(
-            tmin=60, tmax=180, state_dim=12, fps=60.0, min_segments=3, max_iter=3, **UNTIED
+            tmin=60, tmax=180, state_dim=12, fps=60.0, min_segments=3, max_iter=3,
+            observation="residual",
         )
         two = learn(clips, LearnConfig(**base))
         ref = learn(clips, LearnConfig(**base, shard=False))
