@@ -93,7 +93,7 @@ def run_demo(
 
     from ..io import load_salsa, salsa_credit, salsa_split, write_bvh
     from ..metrics import MotionJudge
-    from ..texture import LearnConfig, learn, random_path, synthesize, texture_summary
+    from ..texture import LearnConfig, learn, synthesize, texture_summary
     from ..viz import (
         plot_timeline,
         render_filmstrip,
@@ -180,18 +180,15 @@ def run_demo(
     say(str(tex.summary()))
 
     n_out = max(4, round(seconds * FPS))
-    mean_len = float(np.asarray(tex.segment_lengths).mean())
-    n_textons = max(1, math.ceil(n_out / mean_len))
-    path = random_path(jax.random.key(seed), tex, n_textons)
     say(
-        f"synthesising a new salsa: {n_out} frames ({n_out / FPS:g} s), a random path of "
-        f"{n_textons} textons (seed {seed}), constrained synthesis per texton with sampled "
-        "noise (MT §5)"
+        f"synthesising a new salsa: {n_out} frames ({n_out / FPS:g} s), a random texton path "
+        f"from M with durations from the textons' duration models (seed {seed}), constrained "
+        "synthesis per texton with sampled noise (MT §5)"
     )
-    # the default synthesis: the constrained least squares with innovations replayed from the
-    # training residuals; the lengths of the key poses' segments are rescaled to fill n_out
-    syn_key = jax.random.key(seed + 1)
-    syn = steps.run("synthesise", lambda: synthesize(syn_key, tex, path=path, n_frames=n_out))
+    # the default synthesis, as benchmarked: the path and durations drawn from the texture,
+    # constrained least squares with innovations replayed from the training residuals
+    syn_key = jax.random.key(seed)
+    syn = steps.run("synthesise", lambda: synthesize(syn_key, tex, n_frames=n_out))
     dance = syn.motion
     assert dance is not None  # the texture was learned from motions
     write_bvh(files["dance"], dance)
