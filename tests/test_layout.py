@@ -311,7 +311,7 @@ def _text_files() -> list[Path]:
     return [
         *_modules(),
         *sorted((REPO / "tests").rglob("*.py")),
-        *sorted((REPO / "benchmarks").glob("*.py")),
+        *sorted((REPO / "benchmarks").rglob("*.py")),
     ]
 
 

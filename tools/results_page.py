@@ -13,7 +13,9 @@ The page is never edited by hand. It holds:
   measures, in a fixed order; a report this script does not know yet goes to "Other results",
   so nothing a benchmark writes is left off.
 
-Each report already names the command that made it and the machine it ran on.
+Each results file names the command that made it (a report: a ``Made by:`` line; raw numbers:
+a top-level ``"command"``), and each report the machine it ran on; the script refuses to write
+the page while a results file does not.
 """
 
 from __future__ import annotations
@@ -348,6 +350,20 @@ def report_section(key: str, path: Path, title: str, about: str) -> list[str]:
     return out
 
 
+def without_command() -> list[str]:
+    """The results files that do not name the command that made them."""
+    missing = []
+    for path in results_files(".md").values():
+        if not re.search(r"^Made by: `[^`]+`", path.read_text(encoding="utf-8"), flags=re.M):
+            missing.append(f"{path.relative_to(ROOT)}: no line 'Made by: `<command>`'")
+    jsons = results_files(".json")
+    for key, path in jsons.items():
+        data = _load(jsons, key)
+        if not (isinstance(data, dict) and isinstance(data.get("command"), str)):
+            missing.append(f'{path.relative_to(ROOT)}: no top-level "command"')
+    return missing
+
+
 def build() -> str:
     """The whole page as a string (and the plots written to ``docs/results/``)."""
     mds = results_files(".md")
@@ -389,6 +405,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="fail if the page is out of date")
     args = parser.parse_args(argv)
+    missing = without_command()
+    if missing:
+        print("results files that do not say which command made them:\n" + "\n".join(missing))
+        return 1
     text = build()
     if args.check:
         current = PAGE.read_text(encoding="utf-8") if PAGE.exists() else ""

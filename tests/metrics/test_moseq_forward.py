@@ -1,4 +1,4 @@
-"""The likelihoods of the jax-moseq row (``benchmarks/quality_moseq.py``): the HMM forward
+"""The likelihoods of the jax-moseq row (``benchmarks/quality/quality_moseq.py``): the HMM forward
 algorithm against enumeration of every state path, the AR emission densities against scipy,
 and the row's ``reason`` when jax-moseq is missing. jax-moseq itself is not needed."""
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks" / "quality"))
 from quality_moseq import (
     ar_frame_loglik,
     hmm_forward,

@@ -23,7 +23,7 @@ jax-moseq is an optional dependency (``pip install -e ".[bench,moseq]"``; it pin
 the fit under another interpreter that has it (``python=PATH``): this file is then run as a
 script there, with the vectors passed in an ``.npz`` file and the row returned as JSON::
 
-    PY benchmarks/quality_moseq.py --input vectors.npz --output row.json [--iters 30]
+    PY benchmarks/quality/quality_moseq.py --input vectors.npz --output row.json [--iters 30]
 
 (``vectors.npz``: arrays ``train_0, train_1, …, held_0, …``, each ``(T, D)``).
 """

@@ -37,7 +37,7 @@ Rows, measured in one run:
    innovations: how much of the gap the innovations can close at all.
 5. **Cost**: learn time; forward algorithm against the Viterbi on the same scores.
 
-Run: ``.venv/bin/python benchmarks/bench_quality.py`` (``--quick`` for a smoke run). Writes
+Run: ``.venv/bin/python benchmarks/quality/bench_quality.py`` (``--quick`` for a smoke run). Writes
 ``benchmarks/results/quality.md`` and ``quality.json`` (the report: ``quality_report.py``).
 """
 
@@ -68,13 +68,15 @@ from mtex_jax.texture import (
     synthesize_texton,
     viterbi_segments,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from quality_generators import ar2_samples, noise_driven
 from quality_profile import SEEDS, profile, seed_spread
 from quality_replay import replay
 from quality_report import write
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
+from _common import RESULTS, SHARED, command, use
+
 TRAIN = ["60_01", "60_02", "60_03", "60_04", "60_05", "60_06", "60_07", "60_09", "60_10", "60_11"]
 HELD = ["60_12", "60_13", "60_14", "60_15"]
 FPS = 60.0
@@ -106,7 +108,7 @@ def load(names: list[str]) -> list[mj.Motion]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="smoke run: fewer syntheses, short EM")
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "quality.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "quality.md")
     ap.add_argument("--syntheses", type=int, default=8, help="generated clips per generator")
     ap.add_argument("--arhmm-iters", type=int, default=20)
     ap.add_argument("--moseq-iters", type=int, default=30, help="Gibbs sweeps of jax-moseq")
@@ -114,6 +116,7 @@ def main() -> None:
     n_syn = 2 if args.quick else args.syntheses
     t_start = time.perf_counter()
     res: dict[str, Any] = dict(
+        command=command(),
         machine=dict(
             python=platform.python_version(),
             jax=jax.__version__,
@@ -239,8 +242,8 @@ def main() -> None:
     res["per_clip"] = per_clip
     # typical frames: the per-frame log-density's median (the mean above is dominated by a few
     # capture glitches in the held-out clips, e.g. a hand channel off by 0.3 rad in one frame)
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_learn import frame_values
+    use("speed")
+    from learn_dynamax import frame_values
 
     tex_frames = np.concatenate([frame_values(tex, y, tex.segment(y)) for y in held_y])
     dens["motion texture (best path)"]["median_frame"] = float(np.median(tex_frames))
@@ -280,7 +283,7 @@ def main() -> None:
             train_y, held_y, iters=3 if args.quick else args.moseq_iters, seed=0
         )
     except ImportError as e:
-        res["moseq"] = dict(reason=f"benchmarks/quality_moseq.py cannot be imported: {e}")
+        res["moseq"] = dict(reason=f"benchmarks/quality/quality_moseq.py cannot be imported: {e}")
     if "reason" not in res["moseq"]:
         m = res["moseq"]
         name = (

@@ -6,7 +6,7 @@ synthetic LDS windows and a sequence drawn from them, T = 50,000, 246 textons, D
 k = 15, tmin = 60, tmax = 180). Both DPs run on one precomputed ``SegmentScorer``; warm
 medians of interleaved rounds, first calls reported separately.
 
-Run: ``.venv/bin/python benchmarks/bench_forward.py [--quick]``; writes
+Run: ``.venv/bin/python benchmarks/speed/bench_forward.py [--quick]``; writes
 ``benchmarks/results/forward.md``.
 """
 
@@ -26,10 +26,11 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_learn import make_problem
-from mtex_jax.texture import forward_log_likelihood, segment_scores, viterbi_segments
 
-REPO = Path(__file__).resolve().parents[1]
+from _common import RESULTS, made_by
+from mtex_jax.texture import forward_log_likelihood, segment_scores, viterbi_segments
 
 
 def timed(fn):
@@ -42,7 +43,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--rounds", type=int, default=5)
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "forward.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "forward.md")
     args = ap.parse_args()
     T, n, D, k, tmin, tmax = (
         (6000, 40, 60, 15, 60, 180) if args.quick else (50000, 246, 60, 15, 60, 180)
@@ -66,7 +67,9 @@ def main() -> None:
     lines = [
         "# Forward algorithm vs Viterbi (same segment scores)",
         "",
-        f"`benchmarks/bench_forward.py`{' --quick' if args.quick else ''}: T = {T:,}, "
+        made_by(),
+        "",
+        f"T = {T:,}, "
         f"{n} textons, D = {D}, k = {k}, tmin = {tmin}, tmax = {tmax}; float64; "
         f"{os.cpu_count()} CPUs, load {load0[0]:.1f} before, {os.getloadavg()[0]:.1f} after "
         "(other jobs shared the machine when the load is above 2).",

@@ -15,7 +15,7 @@ Measures, on the 14 CMU salsa clips (``../shared/data/cmu-salsa``, or ``$MTEX_SH
    100/300/1000 particles, constant velocity with 300/1000/3000/10000.
 
 Writes ``benchmarks/results/implicit.md`` and ``benchmarks/results/implicit.json``.
-Run: ``.venv/bin/python benchmarks/bench_implicit.py [--quick]``.
+Run: ``.venv/bin/python benchmarks/speed/bench_implicit.py [--quick]``.
 """
 
 from __future__ import annotations
@@ -25,7 +25,9 @@ import itertools
 import json
 import os
 import platform
+import sys
 import time
+from pathlib import Path
 
 import jax
 
@@ -36,8 +38,12 @@ import jax.numpy as jnp
 import numpy as np
 
 import mtex_jax as mj
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from implicit_report import write_report
 from implicit_settings import CMU, EVAL_CLIPS, N_PROBES, RESULTS, TUNE_CLIP, WINDOW
+
+from _common import command
 from mtex_jax.implicit import ImplicitModel, SynthesisConfig, make_problem, track
 from mtex_jax.internal import (
     sample_exact_traced as exact_sample_indices,
@@ -426,6 +432,7 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     json_path = RESULTS / ("implicit.json" if not args.quick else "implicit_quick.json")
     res: dict = json.loads(json_path.read_text()) if json_path.exists() else {}
+    res = {"command": command(), **{k: v for k, v in res.items() if k != "command"}}
     res["environment"] = {
         "date": time.strftime("%Y-%m-%d"),
         "machine": platform.platform(),

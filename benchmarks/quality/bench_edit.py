@@ -17,7 +17,7 @@ as ``bench_quality.py`` does: the README's ``LearnConfig`` on the 10 training cl
    motion). The load average is recorded at the start, before the timings and at the end
    (the machine is shared).
 
-Run: ``.venv/bin/python benchmarks/bench_edit.py`` (``--quick`` for a smoke run). Writes
+Run: ``.venv/bin/python benchmarks/quality/bench_edit.py`` (``--quick`` for a smoke run). Writes
 ``benchmarks/results/edit.md`` and ``edit.json``.
 """
 
@@ -46,10 +46,11 @@ import mtex_jax as mj
 from mtex_jax import edit as E, metrics
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_quality import FPS, HELD, TRAIN, load  # the same split, clips and frame rate
 
-REPO = Path(__file__).resolve().parents[1]
-OUT = REPO / "benchmarks" / "results"
+from _common import RESULTS as OUT, command
+
 SECONDS = 10.0
 DECAY_S = (0.0, 0.05, 0.1, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 KEYS = ("acceleration_ratio", "jerk_ratio", "skating_median", "skating_p95")
@@ -84,6 +85,7 @@ def main() -> None:
     args = ap.parse_args()
     n_syn, repeats = (2, 1) if args.quick else (args.n, args.repeats)
     res: dict[str, Any] = dict(
+        command=command(),
         machine=dict(
             platform=platform.platform(),
             cpus=os.cpu_count(),
@@ -296,7 +298,9 @@ def report(r: dict[str, Any]) -> str:
     lines = [
         "# Editing and cleaning (issue 17)",
         "",
-        f"`benchmarks/bench_edit.py`, one run; {r['machine']['platform']}, "
+        f"Made by: `{r.get('command', 'python benchmarks/quality/bench_edit.py')}`",
+        "",
+        f"One run; {r['machine']['platform']}, "
         f"{r['machine']['cpus']} CPUs, 1-minute load average {r['machine']['load_start'][0]:.1f} "
         f"at the start, {r['machine']['load_timing'][0]:.1f} before the timings and "
         f"{r['machine']['load_end'][0]:.1f} at the end (shared machine); float64. Texture: the "

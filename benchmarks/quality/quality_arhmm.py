@@ -1,6 +1,6 @@
 """The dynamax linear autoregressive HMM baseline of ``bench_quality.py``: held-out marginal
 log-likelihood and one-step predictive-mean error, with the regularised emissions of the learn
-benchmark."""
+benchmark (``speed/learn_dynamax.py``)."""
 
 from __future__ import annotations
 
@@ -15,8 +15,11 @@ import numpy as np
 def arhmm_prediction(train_y, held_y, K: int, n_iter: int) -> tuple[float, float, float]:
     from dynamax.hidden_markov_model import LinearAutoregressiveHMM
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_learn import _regularised_emissions
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from _common import use
+
+    use("speed")
+    from learn_dynamax import _regularised_emissions
 
     D = train_y[0].shape[1]
     hmm = LinearAutoregressiveHMM(K, D, num_lags=2)

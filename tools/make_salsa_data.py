@@ -19,7 +19,7 @@ wrap and swing near gimbal lock). The script checks every clip against the BVH r
 60 Hz (largest joint rotation error and world joint position error) and refuses to write when
 the error exceeds 0.01° or 0.1 mm.
 
-Run: ``.venv/bin/python benchmarks/make_salsa_data.py`` (after a change of the source files).
+Run: ``.venv/bin/python tools/make_salsa_data.py`` (after a change of the source files).
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import numpy as np
+import numpy as np  # noqa: E402
 
-import mtex_jax as mj
+import mtex_jax as mj  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))

@@ -9,7 +9,7 @@ judges against the other 3 (60_09, 60_10, 60_11, or ``--validate-clips``), for c
 defaults. Without it, the model
 is learned on all 10 training clips and judged on the held-out clips (the reported figures).
 
-Run: ``.venv/bin/python benchmarks/implicit_quality.py [--validate] [--config NAME=k=v,...]``.
+Run: ``.venv/bin/python benchmarks/quality/implicit_quality.py [--validate] [NAME:k=v,...]``.
 Writes ``benchmarks/results/implicit_quality{,_validation}.{md,json}``.
 """
 
@@ -32,9 +32,11 @@ import mtex_jax as mj
 from mtex_jax import metrics
 from mtex_jax.implicit import SynthesisConfig
 
-REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_quality import HELD, IMPLICIT_FPS, SECONDS, TRAIN, load
+
+from _common import RESULTS, command
 
 VALID_HELD = ["60_09", "60_10", "60_11"]
 # reference row: absolute poses of training clips played to their ends (the speed distribution
@@ -149,14 +151,15 @@ def _f(x: Any, nd: int = 2) -> str:
 
 
 def write(res: dict[str, Any], out: Path) -> None:
+    res = {"command": command(), **res}
     out.with_suffix(".json").write_text(json.dumps(res, indent=1, default=float))
     real = next(v for k, v in res["rows"].items() if k.startswith("real"))
     L = [
         "# Implicit model: motion quality" + (" (validation split)" if res["validate"] else ""),
         "",
-        "`benchmarks/implicit_quality.py`"
-        + (" --validate" if res["validate"] else "")
-        + f"; train {', '.join(res['train'])}; judged against {', '.join(res['held'])}; "
+        f"Made by: `{res['command']}`",
+        "",
+        f"Train {', '.join(res['train'])}; judged against {', '.join(res['held'])}; "
         f"30 Hz, window 10, β = 1, no noise, {res.get('syntheses', 8)} syntheses of "
         f"{res.get('seconds', 20.0):g} s from start windows of the judged clips. "
         "Ratios: W1 distance over the real-vs-real floor. Jumps: share of frame-to-frame "
@@ -223,7 +226,7 @@ def main() -> None:
     stem = "implicit_quality_validation" if args.validate else "implicit_quality"
     if args.validate and vh != VALID_HELD:
         stem += "_" + "-".join(vh)
-    write(res, args.out or REPO / "benchmarks" / "results" / stem)
+    write(res, args.out or RESULTS / stem)
 
 
 if __name__ == "__main__":

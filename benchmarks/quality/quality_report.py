@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from quality_profile import lines, spread_lines
 from quality_replay import lines as replay_lines
 
@@ -74,7 +73,9 @@ def write(res: dict[str, Any], out: Path, seed: int) -> None:
     L = [
         "# Motion quality on the held-out split",
         "",
-        "`benchmarks/bench_quality.py`, one run; raw numbers in `quality.json`. Split fixed by",
+        f"Made by: `{res.get('command', 'python benchmarks/quality/bench_quality.py')}`",
+        "",
+        "One run; raw numbers in `quality.json`. Split fixed by",
         f"`shared/data/README.md`: train {', '.join(res['split']['train'])}; held out "
         f"{', '.join(res['split']['held_out'])} ({res['frames']['train']:,} / "
         f"{res['frames']['held']:,} frames at 60 Hz). Machine: {res['machine']['cpus']} CPUs, "

@@ -15,7 +15,7 @@ Rows, in one run on the same machine:
    at 60 Hz joined three times (about 55k frames, the paper's scale), warm (median of 5) and
    first call.
 
-Run: ``.venv/bin/python benchmarks/bench_learn_defaults.py``; writes
+Run: ``.venv/bin/python benchmarks/speed/bench_learn_defaults.py``; writes
 ``benchmarks/results/learn_defaults.md`` and ``.json``.
 """
 
@@ -28,9 +28,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("MTEX_SHARED", REPO.parent / "shared"))
-OUT = REPO / "benchmarks" / "results" / "learn_defaults.md"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import RESULTS, SHARED, command
+
+OUT = RESULTS / "learn_defaults.md"
 
 _CHILD = r"""
 import json, sys, time
@@ -101,6 +102,7 @@ def main() -> None:
     args = ap.parse_args()
     js = OUT.with_suffix(".json")
     res: dict = json.loads(js.read_text()) if js.exists() else {}
+    res = {"command": command(), **{k: v for k, v in res.items() if k != "command"}}
     for which in args.rows.split(","):
         load = os.getloadavg()[0]
         reps = 1 if which == "default120" else args.repeats
@@ -122,7 +124,9 @@ def main() -> None:
     lines = [
         "# Learning cost with the default settings (14 CMU salsa clips, 60 Hz)",
         "",
-        "`benchmarks/bench_learn_defaults.py`; each learn in a fresh process, wall time",
+        f"Made by: `{res['command']}`",
+        "",
+        "Each learn in a fresh process, wall time",
         f"including compilation (median of the runs listed). Machine: {d['cpus']} CPUs; the "
         "load average (1 min) before and after each row is listed.",
         "",

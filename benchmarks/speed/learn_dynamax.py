@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-
 from learn_common import _median, _timed, _timed_cpu
+
 from mtex_jax.texture import frame_terms, init_terms
 
 Array = Any  # jax arrays, for annotations

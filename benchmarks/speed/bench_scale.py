@@ -22,7 +22,7 @@ sampled at the other phase of the 120 Hz capture (the frames in between) and bot
 backwards: 54,890 frames, distinct as sequences but not new dancing. Sizes are prefixes of
 that list (the last clip cut to length).
 
-Run: ``.venv/bin/python benchmarks/bench_scale.py [--sizes 7000,14000,28000,50000]``; writes
+Run: ``.venv/bin/python benchmarks/speed/bench_scale.py [--sizes 7000,14000,28000,50000]``; writes
 ``benchmarks/results/scale.md`` and ``scale.json``.
 """
 
@@ -39,8 +39,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
-OUT = REPO / "benchmarks" / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import RESULTS as OUT, command, use
+
 FPS = 60.0
 CONFIG = dict(tmin=60, tmax=180, fps=FPS)
 
@@ -54,7 +55,7 @@ def log(msg: str) -> None:
 # --------------------------------------------------------------------------------------------
 def corpus() -> list[Any]:
     """The 60 Hz clips in a fixed order: even phase, odd phase, both reversed."""
-    sys.path.insert(0, str(Path(__file__).parent))
+    use("quality")
     from bench_quality import HELD, TRAIN, load
 
     raw = [m[4:] for m in load(TRAIN + HELD)]  # 120 Hz (the first frames are a T-pose)
@@ -361,7 +362,9 @@ def report(r: dict[str, Any]) -> str:
     lines = [
         "# Learning at scale (issue 21)",
         "",
-        f"`benchmarks/bench_scale.py`, one run; {m['platform']}, {m['cpus']} CPUs, jax "
+        f"Made by: `{r.get('command', 'python benchmarks/speed/bench_scale.py')}`",
+        "",
+        f"One run; {m['platform']}, {m['cpus']} CPUs, jax "
         f"{m['jax']}, float64; 1-minute load average {m['load_start'][0]:.1f} at the start and "
         f"{m['load_end'][0]:.1f} at the end (shared machine). Defaults "
         f"(`LearnConfig(tmin=60, tmax=180, fps=60)`), each learn in a fresh process without a "
@@ -462,6 +465,7 @@ def main() -> None:
 
     sizes = [int(s) for s in args.sizes.split(",")]
     res: dict[str, Any] = dict(
+        command=command(),
         machine=dict(
             platform=platform.platform(),
             cpus=os.cpu_count(),

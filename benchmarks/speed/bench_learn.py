@@ -28,7 +28,7 @@ medians over repeats (the 2-core machine is shared and noisy). Writes
 ``benchmarks/results/learn.md`` and ``learn.json`` (``--quick``: a small smoke run written to
 a temporary directory unless ``--out`` is given).
 
-Usage: ``python benchmarks/bench_learn.py [--quick] [--repeats 5] [--out DIR]``
+Usage: ``python benchmarks/speed/bench_learn.py [--quick] [--repeats 5] [--out DIR]``
 """
 
 from __future__ import annotations
@@ -56,23 +56,24 @@ jax.config.update("jax_enable_x64", True)  # a script, not the library: float64 
 import jax.numpy as jnp
 import numpy as np
 
-from _machine import cpu_and_memory
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import RESULTS, command, cpu_and_memory
 
 try:
     import mtex_jax as mj
 except ImportError:  # running from a source checkout without installation
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "src"))
     import mtex_jax as mj
 
 from learn_common import _log, _median, _timed, _timed_cpu
 from learn_dynamax import (
-    _regularised_emissions as _regularised_emissions,  # re-exported for bench_quality.py
     _tail,
     dynamax_run,
     frame_values,
 )
 from learn_problems import make_problem, numpy_viterbi
 from learn_report import write_results
+
 from mtex_jax.texture import (
     LearnConfig,
     greedy_init,
@@ -81,7 +82,6 @@ from mtex_jax.texture import (
     viterbi_segments,
 )
 
-RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_DATA = Path(os.environ.get("MTEX_SHARED", "/work/shared")) / "data" / "cmu-salsa"
 
 
@@ -457,6 +457,7 @@ def main() -> None:
 
     t_run = time.perf_counter()
     result: dict[str, Any] = dict(
+        command=command(),
         date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         quick=bool(args.quick),
         load_average_before=os.getloadavg(),

@@ -29,7 +29,7 @@ parallel). The bridge, banded and dense results are checked against each other (
 and the batched samples against single calls. Writes ``benchmarks/results/synthesis.md`` and
 ``synthesis.json``.
 
-Usage: ``python benchmarks/bench_synthesis.py [--repeats 21] [--batch 1000]``
+Usage: ``python benchmarks/speed/bench_synthesis.py [--repeats 21] [--batch 1000]``
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ import numpy as np
 try:
     import mtex_jax  # noqa: F401
 except ImportError:  # running from a source checkout without installation
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "src"))
 # no public or mtex_jax.internal name for these three yet (the dense reference and the noise)
 from mtex_jax.internal import (
     bridge_usable,
@@ -67,7 +67,8 @@ from mtex_jax.internal import (
 )
 from mtex_jax.texture import Texton, synthesize_texton
 
-RESULTS = Path(__file__).resolve().parent / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import RESULTS, command
 
 
 def random_texton(rng: np.random.Generator, D: int, k: int) -> Texton:
@@ -298,6 +299,7 @@ def main() -> None:
     }
     if args.no_write:
         return
+    result = {"command": command(), **result}
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "synthesis.json").write_text(json.dumps(result, indent=2) + "\n")
     table = "\n".join(
@@ -313,7 +315,9 @@ def main() -> None:
     la = ", ".join(f"{x:.1f}" for x in load_after)
     md = f"""# Constrained synthesis of one texton (issue 5)
 
-`python benchmarks/bench_synthesis.py` — {result["date_utc"]}, {platform.platform()},
+Made by: `{result["command"]}`
+
+Run on {result["date_utc"]}, {platform.platform()},
 {os.cpu_count()} CPUs, jax {jax.__version__} ({jax.default_backend()}); load average (1, 5, 15 min)
 {lb} before / {la} after (shared machine: other jobs were running).
 
