@@ -26,6 +26,12 @@ def texture() -> mj.MotionTexture:
 
 
 @functools.cache
+def default_texture() -> mj.MotionTexture:
+    """The same clips learned with the default settings (tied textons, a residual bank)."""
+    return mj.learn(_clips(), mj.LearnConfig(tmin=18, tmax=54, fps=FPS, max_iter=5))
+
+
+@functools.cache
 def contacts():
     return fit_contacts(_clips(), fps=FPS)
 

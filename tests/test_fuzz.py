@@ -66,7 +66,7 @@ def seeds(cmu_files, tmp_path_factory) -> dict[str, bytes]:
     clip = mj.load_example("dance_a")[:40]
     fm = mj.FeatureMap.fit([clip])
     fm.save(folder / "fm.npz")
-    texture_file(fm, folder / "tex.npz")
+    texture_file(fm, folder / "tex.npz", clip)
     return {
         "bvh": bvh.encode(),
         "deepmimic": dm.encode(),
@@ -75,8 +75,9 @@ def seeds(cmu_files, tmp_path_factory) -> dict[str, bytes]:
     }
 
 
-def texture_file(fm: mj.FeatureMap, path: Path) -> None:
-    """A hand-made two-texton texture (no learning: the fuzz tests stay fast)."""
+def texture_file(fm: mj.FeatureMap, path: Path, clip: mj.Motion) -> None:
+    """A hand-made two-texton texture (no learning: the fuzz tests stay fast), carrying the
+    contact model of ``clip`` (as a learned one does)."""
     rng = np.random.default_rng(0)
     D, k, n = len(fm.active), 2, 2
 
@@ -108,6 +109,7 @@ def texture_file(fm: mj.FeatureMap, path: Path) -> None:
         feature_map=fm,
         config=mj.LearnConfig(tmin=5, tmax=20, state_dim=k, **UNTIED),
         threshold=0.3,
+        contacts=mj.metrics.fit_contacts([clip], fps=fm.fps),
     )
     tex.save(path)
     mj.load_texture(path)

@@ -416,7 +416,7 @@ def test_every_subcommand_bad_arguments_one_line_exit_2(small_texture, tmp_path,
             [str(model), "-o", o, "--frames", "1000000000"],
             [str(text), "-o", o],
             [str(model), "-o", o, "--gif", "x.png"],
-            [str(model), "-o", o, "--clean"],  # no contact model beside the model file
+            [str(model), "-o", o, "--clean", "--contacts", "gone.npz"],  # no such contact file
             [str(model), "-o", o, "--contacts", "c.npz"],  # --contacts without --clean
         ],
         "edit": [

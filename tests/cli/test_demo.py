@@ -69,6 +69,18 @@ def test_demo_refuses_bad_options(capsys):
         assert main(["demo", *bad]) == 2
         err = capsys.readouterr().err
         assert err.startswith("mtex: error: --") and err.count("\n") == 1, err
+    # the validated option types of every command (issue 43): refused by the parser
+    for bad, why in (
+        (["--seconds", "inf"], "finite"),
+        (["--seed", str(2**70)], "seed must be in"),
+        (["--max-iter", "1.5"], "expected an integer"),
+        (["--held-clips", "1e3"], "expected an integer"),
+    ):
+        assert main(["demo", *bad]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"mtex: error: mtex demo: argument {bad[0]}: ") and why in err, err
+    assert main(["demo", "--max-iter", "0"]) == 2
+    assert "--max-iter must be at least 1" in capsys.readouterr().err
 
 
 def test_gif_pair_same_scale_loops_the_shorter_clip(tmp_path):

@@ -6,6 +6,7 @@ differences, the motion before editing)."""
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -252,10 +253,14 @@ def test_synthesize_clean_flag(tex, contacts):
     plain = E.synthesize(jax.random.key(3), tex, n_frames=T)
     ref = mj.synthesize(jax.random.key(3), tex, n_frames=T)
     np.testing.assert_array_equal(np.asarray(plain.Y), np.asarray(ref.Y))
-    cleaned = E.synthesize(jax.random.key(3), tex, n_frames=T, clean=True, contacts=contacts)
+    # the texture carries the contact model of its training clips (== contacts): no argument
+    cleaned = E.synthesize(jax.random.key(3), tex, n_frames=T, clean=True)
     assert cleaned.Y.shape == ref.Y.shape and not np.allclose(cleaned.Y, ref.Y)
-    with pytest.raises(ValueError, match="contacts"):
-        E.synthesize(jax.random.key(3), tex, n_frames=T, clean=True)
+    assert contacts.penetration(cleaned.motion).max_depth <= 0.01
+    # a texture without its training contacts (learned from arrays) needs them passed
+    bare = dataclasses.replace(tex, contacts=None)
+    with pytest.raises(ValueError, match=r"contact model.*carries none"):
+        E.synthesize(jax.random.key(3), bare, n_frames=T, clean=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -342,7 +347,9 @@ def test_cli_bad_input_is_one_line(tmp_path, tex):
         "x.bvh",
     )
     assert r.returncode == 2 and "--frame" in r.stderr
-    r = _cli("synth", str(model), "-o", str(tmp_path / "s.bvh"), "--clean")
-    assert r.returncode == 2 and "contact model" in r.stderr and "Traceback" not in r.stderr
+    gone = str(tmp_path / "gone.contacts.npz")  # the model's own contacts need no file
+    r = _cli("synth", str(model), "-o", str(tmp_path / "s.bvh"), "--clean", "--contacts", gone)
+    assert r.returncode == 2 and "gone.contacts.npz: no such file" in r.stderr
+    assert "Traceback" not in r.stderr
     r = _cli("synth", str(model), "-o", str(tmp_path / "s.bvh"), "--contacts", "c.npz")
     assert r.returncode == 2 and "only used with --clean" in r.stderr

@@ -65,8 +65,35 @@ def test_log_likelihood_equals_scipy():
         want = multivariate_normal(np.asarray(model.m0), S0).logpdf(np.r_[y[0], y[1]])
         want += multivariate_normal(np.zeros(4), S).logpdf(y[2:] - pred).sum()
         np.testing.assert_allclose(model.log_likelihood(y), want, rtol=1e-10)
-        np.testing.assert_allclose(model.log_likelihood(y, per_frame=True), want / 50, rtol=1e-10)
+        np.testing.assert_allclose(model.log_likelihood(y, mean=True), want / 50, rtol=1e-10)
         assert model.frame_log_density(y).shape == (49,)
+
+
+def test_per_frame_log_likelihood_is_the_chain_rule_against_scipy():
+    """``per_frame=True``: ``log p(y_0)``, ``log p(y_1 | y_0)`` (the first-pair Gaussian's
+    marginal and conditional), then the one-step densities, each against scipy on a tiny
+    input; the values sum to the total."""
+    rng = np.random.default_rng(3)
+    seqs, _ = _ar2_data(rng, 200, 3)
+    y = seqs[1][:6]
+    D = 3
+    for model in (fit_ar2(seqs), hold_last(seqs)):
+        S = np.asarray(model.chol @ model.chol.T)
+        S0 = np.asarray(model.chol0 @ model.chol0.T)
+        m0 = np.asarray(model.m0)
+        A1, A2, c = (np.asarray(a) for a in (model.A1, model.A2, model.c))
+        want = [multivariate_normal(m0[:D], S0[:D, :D]).logpdf(y[0])]
+        gain = S0[D:, :D] @ np.linalg.inv(S0[:D, :D])  # y_1 | y_0
+        cond = multivariate_normal(m0[D:] + gain @ (y[0] - m0[:D]), S0[D:, D:] - gain @ S0[:D, D:])
+        want.append(cond.logpdf(y[1]))
+        for t in range(2, len(y)):
+            want.append(multivariate_normal(A1 @ y[t - 1] + A2 @ y[t - 2] + c, S).logpdf(y[t]))
+        got = model.log_likelihood(y, per_frame=True)
+        assert isinstance(got, np.ndarray) and got.shape == (6,)
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(got.sum(), model.log_likelihood(y), rtol=1e-12)
+        with pytest.raises(ValueError, match="exclude each other"):
+            model.log_likelihood(y, per_frame=True, mean=True)
 
 
 def test_fixed_predictors():

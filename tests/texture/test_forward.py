@@ -190,7 +190,7 @@ def test_bad_input():
 @pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
 def test_marginal_at_least_best_path_on_held_out_salsa(cmu_motions):
     """On real held-out clips the marginal log-likelihood is >= the best path's score, and the
-    per-frame figures are the totals over the number of frames."""
+    mean figures are the totals over the number of frames."""
     import mtex_jax as mj
 
     train = [m.resample(30.0) for m in cmu_motions[:3]]
@@ -205,7 +205,7 @@ def test_marginal_at_least_best_path_on_held_out_salsa(cmu_motions):
         assert np.isfinite(ll) and np.isfinite(best)
         assert ll >= best - 1e-6 * abs(best)
         T = m.n_frames
-        np.testing.assert_allclose(tex.log_likelihood(m, per_frame=True), ll / T, rtol=1e-12)
+        np.testing.assert_allclose(tex.log_likelihood(m, mean=True), ll / T, rtol=1e-12)
         np.testing.assert_allclose(float(tex.segment(m).score), best, rtol=1e-12)
 
 

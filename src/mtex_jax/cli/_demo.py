@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from ._evaluate import write_json
-from ._validators import positive, positive_int
+from ._validators import float_arg, int_arg, positive, positive_int, seed_arg
 
 __all__ = ["register", "run_demo"]
 
@@ -272,7 +272,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     positive("seconds", args.seconds)
     if args.seconds > MAX_SECONDS:
         raise ValueError(f"--seconds {args.seconds:g} exceeds the limit of {MAX_SECONDS:g}")
-    for name in ("train_clips", "held_clips"):
+    for name in ("train_clips", "held_clips", "max_iter"):
         if getattr(args, name) is not None:
             positive_int(name.replace("_", "-"), getattr(args, name))
     t0 = time.perf_counter()
@@ -301,14 +301,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument("--out", default="out", help="output folder (default: out)")
     s.add_argument(
-        "--seconds", type=float, default=20.0, help="length of the new dance (default 20)"
+        "--seconds", type=float_arg, default=20.0, help="length of the new dance (default 20)"
     )
-    s.add_argument("--seed", type=int, default=0, help="random seed of the texton path")
+    s.add_argument("--seed", type=seed_arg, default=0, help="random seed of the texton path")
     s.add_argument(
-        "--train-clips", type=int, default=None, help="use only the first N training clips"
+        "--train-clips", type=int_arg, default=None, help="use only the first N training clips"
     )
     s.add_argument(
-        "--held-clips", type=int, default=None, help="use only the first N held-out clips"
+        "--held-clips", type=int_arg, default=None, help="use only the first N held-out clips"
     )
-    s.add_argument("--max-iter", type=int, default=20, help="most EM iterations (default 20)")
+    s.add_argument("--max-iter", type=int_arg, default=20, help="most EM iterations (default 20)")
     s.set_defaults(func=_cmd_demo)

@@ -1,5 +1,6 @@
 """``mtex edit`` (a joint at a point at a frame, the texture's dynamics otherwise) and
-``mtex contacts`` (fit the training clips' foot-contact model that ``synth --clean`` uses)."""
+``mtex contacts`` (fit the foot-contact model of clips, which ``synth --clean`` may use instead
+of the one a model file carries)."""
 
 from __future__ import annotations
 
@@ -7,18 +8,39 @@ import argparse
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ._validators import SOURCE_HELP, add_force, float_arg, int_arg, output, read_source
 
-__all__ = ["contacts_path", "register"]
+__all__ = ["clean_contacts", "contacts_path", "register"]
 
 
 def contacts_path(model: str) -> Path:
-    """The default contact-model file beside a model file: ``NAME.contacts.npz``."""
+    """The contact-model file beside a model file: ``NAME.contacts.npz``."""
     p = Path(model)
     return p.with_name(p.stem + ".contacts.npz")
+
+
+def clean_contacts(tex: Any, model: str, option: str | None) -> Any:
+    """The contact model of ``synth --clean``: the file of ``--contacts``, else the one the
+    model file carries (fitted by ``learn`` on its training clips), else ``MODEL.contacts.npz``
+    beside it (a model saved before model files carried their contacts)."""
+    from ..edit import load_contacts
+
+    if option:
+        return load_contacts(option)
+    if tex.contacts is not None:
+        return tex.contacts
+    beside = contacts_path(model)
+    if beside.is_file():
+        return load_contacts(beside)
+    raise ValueError(
+        f"--clean needs the training clips' contact model: {model} carries none (it was saved "
+        "before model files carried their contacts; learn it again, or make one with "
+        "'mtex contacts CLIPS... -o FILE' and pass --contacts FILE)"
+    )
 
 
 def _point(text: str) -> tuple[float, float, float]:
@@ -130,10 +152,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     s = sub.add_parser(
         "contacts",
-        help="fit the foot-contact model of training clips (for 'synth --clean')",
+        help="fit the foot-contact model of clips (for 'synth --clean --contacts')",
         description="Per-foot height and speed thresholds and the floor, from training clips "
-        "(mtex_jax.metrics.fit_contacts). Save it as MODEL.contacts.npz beside a model file "
-        "and 'mtex synth --clean' finds it.",
+        "(mtex_jax.metrics.fit_contacts). A model file learned from clips carries its own; "
+        "'mtex synth --clean --contacts FILE' uses this one instead (and a file "
+        "MODEL.contacts.npz beside a model file without one).",
     )
     s.add_argument("clips", nargs="+", help=SOURCE_HELP)
     s.add_argument(

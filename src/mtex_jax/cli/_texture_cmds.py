@@ -191,7 +191,6 @@ def _write_outputs(syn, out: str, gif: str | None, title: str) -> None:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    import equinox as eqx
     import jax
 
     from ..texture import synthesize
@@ -207,39 +206,28 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         raise ValueError(f"--frames must be >= 4, got {n}")
     if n > MAX_GENERATED_FRAMES:
         raise ValueError(f"--frames {n:,} exceeds the limit of {MAX_GENERATED_FRAMES:,}")
-    contacts = None
-    if args.clean:
-        from ..edit import load_contacts
-        from ._edit import contacts_path
-
-        cpath = args.contacts or str(contacts_path(args.model))
-        if not Path(cpath).exists():
-            raise ValueError(
-                f"--clean needs the training clips' contact model: {cpath} does not exist "
-                "(make it with 'mtex contacts CLIPS... -o FILE' and pass --contacts FILE)"
-            )
-        contacts = load_contacts(cpath)
-    elif args.contacts:
+    if args.contacts and not args.clean:
         raise ValueError("--contacts is only used with --clean")
     print(f"synthesising {n} frames ({n / fps:.1f} s at {fps:g} Hz)...", flush=True)
     t0 = time.perf_counter()
-    syn = synthesize(jax.random.key(args.seed), tex, n_frames=n)
-    print(
-        f"synthesised {n} frames from {tex.n_textons} textons in {time.perf_counter() - t0:.1f} s"
-    )
-    if contacts is not None:
-        from ..edit import clean
+    if not args.clean:
+        syn = synthesize(jax.random.key(args.seed), tex, n_frames=n)
+        took = time.perf_counter() - t0
+        print(f"synthesised {n} frames from {tex.n_textons} textons in {took:.1f} s")
+    else:  # the function of the API: mtex_jax.edit.synthesize(..., clean=True)
+        from ..edit import synthesize as synthesize_edit
+        from ._edit import clean_contacts
 
-        print("cleaning: foot contacts and the floor (a least-squares solve)...", flush=True)
-        t0 = time.perf_counter()
-        res = clean(tex, syn, contacts, loglik=False)
-        syn = eqx.tree_at(lambda s: (s.Y, s.motion), syn, (res.Y, res.motion))
+        cm = clean_contacts(tex, args.model, args.contacts)
+        own = None if cm is tex.contacts else cm  # None: the model's own, as the API does
+        print("and cleaning: foot contacts and the floor (a least-squares solve)...", flush=True)
+        syn = synthesize_edit(jax.random.key(args.seed), tex, n_frames=n, clean=True, contacts=own)
+        assert syn.motion is not None
+        sk, pen = cm.skating(syn.motion), cm.penetration(syn.motion)
         print(
-            f"cleaned in {time.perf_counter() - t0:.1f} s: foot skating median "
-            f"{res.skating_before.median:.2f} -> {res.skating_after.median:.2f} m/s, deepest "
-            f"foot below the floor {100 * res.penetration_before.max_depth:.1f} -> "
-            f"{100 * res.penetration_after.max_depth:.1f} cm"
-            + ("" if bool(res.edit.converged) else " (solver did NOT converge)")
+            f"synthesised {n} frames from {tex.n_textons} textons and cleaned in "
+            f"{time.perf_counter() - t0:.1f} s: foot skating median {sk.median:.2f} m/s, "
+            f"deepest foot below the training floor {100 * pen.max_depth:.1f} cm"
         )
     _write_outputs(syn, args.output, args.gif, f"mtex synth (seed {args.seed})")
     return 0
@@ -463,12 +451,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument(
         "--clean",
         action="store_true",
-        help="remove foot skating and floor penetration (mtex_jax.edit.clean)",
+        help="remove foot skating and floor penetration with the training clips' contact model "
+        "the model file carries (mtex_jax.edit.synthesize with clean=True)",
     )
     s.add_argument(
         "--contacts",
         default=None,
-        help="contact model for --clean (default MODEL.contacts.npz, see 'mtex contacts')",
+        help="another contact model for --clean (a file of 'mtex contacts'; default: the model "
+        "file's own, else MODEL.contacts.npz beside it)",
     )
     add_force(s)
     s.set_defaults(func=_cmd_synth)

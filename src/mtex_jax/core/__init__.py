@@ -10,7 +10,10 @@
 - the resource limits of readers, model files, configurations and generators (constants of
   ``core/_limits.py``, re-exported here; :func:`set_limit` raises one) and the PRNG key check
   of public entry points;
-- JAX's persistent compilation cache, opt-in (:func:`enable_compilation_cache`).
+- JAX's persistent compilation cache, opt-in (:func:`enable_compilation_cache`);
+- shape buckets (:func:`bucket_length`, :func:`pad_frames`): public calls pad lengths to a few
+  sizes so that a new length does not compile a new program; :func:`count_compiles` counts
+  the compilations of a block of code.
 """
 
 from ._arrays import (
@@ -21,6 +24,14 @@ from ._atomic import (
     atomic_write as atomic_write,
     check_writable as check_writable,
     remove_stale_temporaries as remove_stale_temporaries,
+)
+from ._buckets import (
+    BUCKET_FRAMES as BUCKET_FRAMES,
+    CompileCount as CompileCount,
+    as_array as as_array,
+    bucket_length as bucket_length,
+    count_compiles as count_compiles,
+    pad_frames as pad_frames,
 )
 from ._cache import (
     default_cache_dir as default_cache_dir,
@@ -63,6 +74,7 @@ from ._limits import (
 )
 
 __all__ = [
+    "BUCKET_FRAMES",
     "MAX_ABS_VALUE",
     "MAX_CANDIDATES",
     "MAX_COMPONENTS",
@@ -82,7 +94,10 @@ __all__ = [
     "MAX_STATE_DIM",
     "MAX_TEXTONS",
     "MIN_FRAME_TIME",
+    "CompileCount",
+    "as_array",
     "atomic_write",
+    "bucket_length",
     "check_count",
     "check_frame_time",
     "check_json_depth",
@@ -91,12 +106,14 @@ __all__ = [
     "check_real",
     "check_size",
     "check_writable",
+    "count_compiles",
     "default_cache_dir",
     "describe_kind",
     "enable_compilation_cache",
     "file_kind",
     "limit",
     "load_arrays_json",
+    "pad_frames",
     "read_input",
     "remove_stale_temporaries",
     "save_arrays_json",

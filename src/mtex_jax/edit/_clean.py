@@ -2,7 +2,8 @@
 
 Contacts come from a :class:`~mtex_jax.metrics.ContactModel` fitted on the *training* clips
 (:func:`~mtex_jax.metrics.fit_contacts`: per-foot height and speed thresholds and the training
-floor); :func:`save_contacts` / :func:`load_contacts` store it beside the model file. On the
+floor): the one a learned texture carries, or one passed by hand (:func:`save_contacts` /
+:func:`load_contacts` store it in a file of its own). On the
 raw motion a step ``t → t+1`` of foot ``f`` is a contact when the foot is low at both ends
 (``h < H_f``; optionally also slow, ``s < S_f``, the model's own rule). Each run of contact
 steps becomes a plant (no horizontal motion, at the run's mean height clipped to
@@ -44,6 +45,7 @@ __all__ = [
     "clean",
     "clean_weights",
     "contact_plants",
+    "contacts_of",
     "load_contacts",
     "save_contacts",
     "swing_guidance",
@@ -230,7 +232,7 @@ def swing_guidance(
 def clean(
     texture: MotionTexture,
     motion: Synthesis | Motion,
-    contacts: ContactModel,
+    contacts: ContactModel | None = None,
     *,
     weights: EditWeights | None = None,
     min_steps: int = 1,
@@ -260,7 +262,8 @@ def clean(
         motion: a :class:`Synthesis` (its texton segments are the prior's segmentation) or a
             :class:`Motion` (segmented by the texture).
         contacts: a :class:`ContactModel` fitted on the training clips (same skeleton, at the
-            texture's frame rate).
+            texture's frame rate); ``None``: the one the texture carries
+            (``MotionTexture.contacts``, fitted by :func:`~mtex_jax.texture.learn`).
         weights: objective weights (default :func:`clean_weights`).
         min_steps: shortest contact run that is planted.
         rule: contact rule of :func:`contact_plants` (``"low"`` or ``"low_and_slow"``).
@@ -286,6 +289,7 @@ def clean(
         :class:`CleanResult`.
     """
     fm = feature_map_of(texture)
+    contacts = contacts_of(texture, contacts)
     if not isinstance(contacts, ContactModel):
         raise TypeError(f"contacts must be a ContactModel, got {type(contacts).__name__}")
     if not contacts.skeleton.same_structure(fm.skeleton):
@@ -390,8 +394,8 @@ def clean(
         skating_after=contacts.skating(out),
         penetration_before=contacts.penetration(raw),
         penetration_after=contacts.penetration(out),
-        loglik_before=texture.log_likelihood(Y, per_frame=True) if loglik else nan,
-        loglik_after=texture.log_likelihood(res.Y, per_frame=True) if loglik else nan,
+        loglik_before=texture.log_likelihood(Y, mean=True) if loglik else nan,
+        loglik_after=texture.log_likelihood(res.Y, mean=True) if loglik else nan,
     )
 
 
@@ -418,19 +422,54 @@ def save_contacts(path: str | os.PathLike[str], contacts: ContactModel) -> None:
 
 
 def load_contacts(path: str | os.PathLike[str]) -> ContactModel:
-    """Read a :class:`ContactModel` written by :func:`save_contacts` (checked)."""
+    """Read a :class:`ContactModel` written by :func:`save_contacts`.
+
+    Every value passes the checks a fitted model passes (:class:`ContactModel`: distinct foot
+    joints of the skeleton, finite thresholds of one per foot, heights at or above the floor,
+    positive speeds, a frame rate in range); the file is never unpickled.
+
+    Raises:
+        ValueError: naming the file and the problem.
+    """
     req = ("feet", "height_threshold", "speed_threshold")
     arrays, meta = load_arrays_json(path, kind=_KIND, required=req, allowed=())
     try:
+        if meta.get("format_version") != 1:
+            raise ValueError(f"format version {meta.get('format_version')!r} is not supported")
         sk = Skeleton.from_json_dict(meta["skeleton"])
-        feet = tuple(int(f) for f in arrays["feet"].reshape(-1))
-        ht = np.asarray(arrays["height_threshold"], np.float64).reshape(-1)
-        st = np.asarray(arrays["speed_threshold"], np.float64).reshape(-1)
-        floor, fps = float(meta["floor"]), float(meta["fps"])
-    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        feet = arrays["feet"]
+        if feet.dtype.kind not in "iu" or feet.ndim != 1:
+            raise ValueError(
+                f"feet must be a vector of joint indices, got {feet.dtype} {feet.shape}"
+            )
+        return ContactModel(
+            sk,
+            tuple(feet.tolist()),
+            arrays["height_threshold"],
+            arrays["speed_threshold"],
+            meta["floor"],
+            meta["fps"],
+        )
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as e:
         raise ValueError(f"{path}: invalid contact model file: {e}") from None
-    ok = len(feet) > 0 and ht.shape == st.shape == (len(feet),)
-    ok = ok and all(0 <= f < sk.n_joints for f in feet) and np.isfinite([*ht, *st, floor]).all()
-    if not ok or not fps > 0:
-        raise ValueError(f"{path}: invalid contact model file (shapes or values)")
-    return ContactModel(sk, feet, ht, st, floor, fps)
+
+
+def contacts_of(texture: MotionTexture, contacts: ContactModel | None = None) -> ContactModel:
+    """``contacts`` if given, else the contact model the texture carries (fitted by
+    :func:`~mtex_jax.texture.learn` on its training clips, design §6.6).
+
+    Raises:
+        ValueError: neither (a texture learned from observation arrays, or saved before
+            textures carried their training contacts).
+    """
+    if contacts is not None:
+        return contacts
+    own = getattr(texture, "contacts", None)
+    if own is None:
+        raise ValueError(
+            "cleaning needs the training clips' contact model, and this texture carries none "
+            "(it was learned from observation arrays, or saved before textures carried their "
+            "contacts): pass contacts= (mtex_jax.metrics.fit_contacts on the training clips, "
+            "or mtex_jax.edit.load_contacts)"
+        )
+    return own

@@ -1,4 +1,4 @@
-"""``synthesize(..., clean=True)``: the texture's synthesis, optionally cleaned."""
+"""``synthesize(..., clean=True)``: the texture's synthesis, optionally cleaned (design §6.6)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from typing import Any
 
 from ..metrics import ContactModel
 from ..texture import Synthesis, synthesize as _texture_synthesize
-from ._clean import clean as _clean
+from ._clean import clean as _clean, contacts_of
 
 __all__ = ["synthesize"]
 
@@ -23,8 +23,10 @@ def synthesize(
 
     With ``clean=False`` this is exactly the texture's synthesis. With ``clean=True`` the
     returned :class:`Synthesis` has the cleaned ``Y`` and ``motion`` (same path, lengths and
-    key segments); ``contacts`` (a :class:`~mtex_jax.metrics.ContactModel` fitted on the
-    training clips, see :func:`~mtex_jax.edit.load_contacts`) is then required.
+    key segments), cleaned with the training clips' contact model: ``contacts`` when given,
+    else the one the texture carries (``MotionTexture.contacts``, fitted by
+    :func:`~mtex_jax.texture.learn` on the clips it learned from), so
+    ``synthesize(key, tex, n_frames=1200, clean=True)`` needs nothing else.
 
     Args:
         key: PRNG key (or ``None`` for the zero-noise synthesis), as for the texture's.
@@ -32,19 +34,21 @@ def synthesize(
         *args: passed to :func:`mtex_jax.texture.synthesize`.
         **kwargs: passed to :func:`mtex_jax.texture.synthesize`.
         clean: clean the synthesis (remove foot skating and floor penetration).
-        contacts: the training clips' contact model (required with ``clean=True``).
+        contacts: a contact model overriding the texture's (a
+            :class:`~mtex_jax.metrics.ContactModel` fitted on the training clips, see
+            :func:`~mtex_jax.edit.load_contacts`).
+
+    Raises:
+        ValueError: ``contacts`` without ``clean=True``; ``clean=True`` on a texture that
+            carries no contact model (learned from observation arrays) without ``contacts``.
     """
-    syn = _texture_synthesize(key, texture, *args, **kwargs)
     if not clean:
         if contacts is not None:
             raise ValueError("contacts is only used with clean=True")
-        return syn
-    if contacts is None:
-        raise ValueError(
-            "clean=True needs contacts: a ContactModel fitted on the training clips "
-            "(mtex_jax.metrics.fit_contacts, or mtex_jax.edit.load_contacts)"
-        )
-    res = _clean(texture, syn, contacts, loglik=False)
+        return _texture_synthesize(key, texture, *args, **kwargs)
+    cm = contacts_of(texture, contacts)  # before the synthesis: fail fast
+    syn = _texture_synthesize(key, texture, *args, **kwargs)
+    res = _clean(texture, syn, cm, loglik=False)
     return Synthesis(
         Y=res.Y,
         path=syn.path,

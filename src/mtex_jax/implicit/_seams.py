@@ -57,6 +57,7 @@ def smooth_seams(
     seam: Bool[Array, " n"],
     width: int,
     channels: np.ndarray,
+    n_valid: Array | None = None,
 ) -> Float[Array, "n D"]:
     """The generated poses with the frames around each seam low-passed (module docstring).
 
@@ -66,12 +67,19 @@ def smooth_seams(
         seam: ``(n,)`` True at the first frame of each newly chosen example.
         width: ``S = SynthesisConfig.seam_smoothing ≥ 1``.
         channels: ``(D,)`` bool, the channels that are smoothed.
+        n_valid: the frames ``0 … n_valid − 1`` are the motion, the rest padding (a shape
+            bucket): frame ``n_valid − 1`` is the last one and seams after it do not count.
 
     Returns:
         ``(n, D)`` smoothed poses, same dtype.
     """
+    n = poses.shape[0]
     prev = jnp.concatenate([before[None], poses[:-1]], axis=0)
     nxt = jnp.concatenate([poses[1:], poses[-1:]], axis=0)
+    if n_valid is not None:
+        t = jnp.arange(n)
+        nxt = jnp.where((t + 1 < n_valid)[:, None], nxt, poses)
+        seam = seam & (t < n_valid)
     avg = 0.25 * (prev + 2.0 * poses + nxt)
     m = seam_weights(seam, width).astype(poses.dtype)[:, None]
     m = m * jnp.asarray(channels, poses.dtype)[None, :]

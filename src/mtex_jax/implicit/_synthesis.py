@@ -304,8 +304,13 @@ def synthesize_scan(
     noise: Array,
     sampler: str,
     cfg: SynthesisConfig,
+    n_valid: Array | None = None,
 ) -> tuple[Float[Array, "n_frames D"], Int[Array, " n_frames"]]:
-    """The generator of the module docstring as one ``lax.scan``: poses and examples."""
+    """The generator of the module docstring as one ``lax.scan``: poses and examples.
+
+    ``n_valid``: the first ``n_valid`` frames are the motion asked for, the rest a shape
+    bucket's padding (the seam smoothing then ends at frame ``n_valid − 1``), so that they
+    equal those of a scan of ``n_valid`` frames."""
     dim = fm.dim
     dt = win0.dtype
     std = db.pose_std.astype(dt)[:dim]
@@ -377,7 +382,7 @@ def synthesize_scan(
     )
     _, (poses, idx, seam) = lax.scan(step, init, jax.random.split(key, n_frames))
     if cfg.seam_smoothing > 0:
-        poses = smooth_seams(poses, win0[-1, :dim], seam, cfg.seam_smoothing, ~vel)
+        poses = smooth_seams(poses, win0[-1, :dim], seam, cfg.seam_smoothing, ~vel, n_valid)
     return poses, idx
 
 

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 from typing import Any, Literal, Protocol
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
-from ..core import MAX_GENERATED_FRAMES, check_count, check_key
+from ..core import MAX_GENERATED_FRAMES, bucket_length, check_count, check_key
 from ..motion import FeatureMap, Motion
 from ._database import MotionDatabase
 from ._synthesis import SynthesisConfig, SynthLeafRule, synthesize_jit
@@ -107,18 +108,25 @@ def synthesize_poses(
             raise ValueError("synthesize: start_window contains NaN or inf")
     dtype = db.windows.dtype
     win = win.astype(dtype)
+    # the scan runs for a shape bucket of frames (design §11): its per-step keys are
+    # prefix-stable, so the first n_frames are those of an n_frames scan
     gen, idx = synthesize_jit(
         db,
         fm,
         key,
         win,
-        int(n_frames),
+        bucket_length(int(n_frames)),
         jnp.asarray(beta, dtype),
         jnp.asarray(noise, dtype),
         sampler,
         cfg,
+        jax.device_put(np.asarray(n_frames)),
     )
-    return jnp.concatenate([win[:, : fm.dim], gen], axis=0), idx
+    try:  # cut and joined on the host: eager slices would compile once per length
+        head = np.concatenate([np.asarray(win[:, : fm.dim]), np.asarray(gen)[:n_frames]])
+        return jax.device_put(head), jax.device_put(np.asarray(idx)[:n_frames])
+    except jax.errors.TracerArrayConversionError:
+        return jnp.concatenate([win[:, : fm.dim], gen[:n_frames]], axis=0), idx[:n_frames]
 
 
 def synthesize(

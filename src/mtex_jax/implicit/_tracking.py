@@ -47,7 +47,14 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from ..core import MAX_GENERATED_FRAMES, MAX_PARTICLES, check_count, check_key
+from ..core import (
+    MAX_GENERATED_FRAMES,
+    MAX_PARTICLES,
+    bucket_length,
+    check_count,
+    check_key,
+    pad_frames,
+)
 from ..motion import (
     FeatureMap,
     Motion,
@@ -231,7 +238,7 @@ def _systematic(key: PRNGKeyArray, w: Float[Array, " N"]) -> Int[Array, " N"]:
 def _track_impl(
     db: MotionDatabase,
     fm: FeatureMap,
-    problem: TrackingProblem,
+    problem: _Inputs,
     key: PRNGKeyArray,
     n_particles: int,
     prior: str,
@@ -287,6 +294,19 @@ def _track_impl(
 
 
 _track_jit = eqx.filter_jit(_track_impl)
+
+
+class _Inputs(eqx.Module):
+    """What the filter reads of a :class:`TrackingProblem`: its arrays and the observed
+    joints, without the static frame numbers (which differ from problem to problem), the
+    observations padded to a shape bucket (design §11)."""
+
+    joints: tuple[int, ...] = eqx.field(static=True)
+    camera: Camera
+    init_window: Float[Array, "d P"]
+    init_position: Float[Array, " 3"]
+    init_heading: Float[Array, ""]
+    observations: Float[Array, "T K 2"]
 
 
 def track(
@@ -350,10 +370,21 @@ def track(
     if not (np.isfinite(likelihood_sigma) and likelihood_sigma > 0):
         raise ValueError(f"track: likelihood_sigma must be positive, got {likelihood_sigma}")
     dt = model.windows.dtype
-    mean_x, mean_psi, mean_root, ess = _track_jit(
+    # the filter is causal: run on the observations padded to a shape bucket (design §11),
+    # the first T frames kept (cut on the host: eager slices compile once per length)
+    T = problem.n_frames
+    inputs = _Inputs(
+        joints=problem.joints,
+        camera=problem.camera,
+        init_window=problem.init_window,
+        init_position=problem.init_position,
+        init_heading=problem.init_heading,
+        observations=pad_frames(np.asarray(problem.observations), bucket_length(T), axis=0),
+    )
+    out = _track_jit(
         model.database,
         model.feature_map,
-        problem,
+        inputs,
         key,
         int(n_particles),
         prior,
@@ -364,17 +395,19 @@ def track(
         leaf,
         int(candidates),
     )
-    truth = problem.truth
-    err = jnp.mean(jnp.linalg.norm(mean_x - truth, axis=-1), axis=-1)
+    mean_x, mean_psi, mean_root, ess = (np.asarray(a)[:T] for a in out)
+    truth = np.asarray(problem.truth)
+    err = np.mean(np.linalg.norm(mean_x - truth, axis=-1), axis=-1)
     rel = (mean_x - mean_x[:, :1]) - (truth - truth[:, :1])
-    err_rel = jnp.mean(jnp.linalg.norm(rel, axis=-1), axis=-1)
+    err_rel = np.mean(np.linalg.norm(rel, axis=-1), axis=-1)
+    put = jax.device_put
     return TrackResult(
         prior=prior,
         n_particles=int(n_particles),
-        mean_joints=mean_x,
-        mean_pose=mean_psi,
-        mean_root=mean_root,
-        ess=ess,
-        error=err,
-        error_root_relative=err_rel,
+        mean_joints=put(mean_x),
+        mean_pose=put(mean_psi),
+        mean_root=put(mean_root),
+        ess=put(ess),
+        error=put(err),
+        error_root_relative=put(err_rel),
     )

@@ -24,6 +24,7 @@ same observation vectors (every frame scored).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Literal, overload
 
 import equinox as eqx
 import jax
@@ -86,11 +87,33 @@ class GaussianAR2(eqx.Module):
         y_{t−2})`` for ``t = 2…T−1`` (``T − 1`` numbers that sum to ``log p(Y)``)."""
         return _frame_log_density(self, _check_seq(Y, self.obs_dim, "Y"))
 
-    def log_likelihood(self, Y: Float[ArrayLike, "T D"], *, per_frame: bool = False) -> float:
-        """``log p(Y)`` in nats; ``per_frame=True`` divides by the number of frames ``T``."""
+    @overload
+    def log_likelihood(
+        self, Y: Float[ArrayLike, "T D"], *, mean: bool = ..., per_frame: Literal[False] = ...
+    ) -> float: ...
+
+    @overload
+    def log_likelihood(
+        self, Y: Float[ArrayLike, "T D"], *, mean: bool = ..., per_frame: Literal[True]
+    ) -> np.ndarray: ...
+
+    def log_likelihood(
+        self, Y: Float[ArrayLike, "T D"], *, mean: bool = False, per_frame: bool = False
+    ) -> float | np.ndarray:
+        """``log p(Y)`` in nats (design §10.4).
+
+        ``mean=True`` divides it by the number of frames ``T``. ``per_frame=True`` returns its
+        exact decomposition by the chain rule, ``(T,)`` values summing to ``log p(Y)``:
+        ``log p(y_0)`` and ``log p(y_1 | y_0)`` (the first-pair density ``N(m0, S0)`` split
+        through its Cholesky factor), then ``log p(y_t | y_{t−1}, y_{t−2})`` for ``t ≥ 2``.
+        """
+        if mean and per_frame:
+            raise ValueError("mean=True and per_frame=True exclude each other")
         y = _check_seq(Y, self.obs_dim, "Y")
+        if per_frame:
+            return np.asarray(_chain_log_density(self, y), np.float64)
         ll = float(jnp.sum(_frame_log_density(self, y)))
-        return ll / (y.shape[0] if per_frame else 1)
+        return ll / (y.shape[0] if mean else 1)
 
 
 @eqx.filter_jit
@@ -111,6 +134,24 @@ def _frame_log_density(model: GaussianAR2, Y: Array) -> Array:
     first = _gauss_logpdf(jnp.concatenate([Y[0], Y[1]])[None] - model.m0, model.chol0)
     rest = _gauss_logpdf(Y[2:] - _predict(model, Y), model.chol)
     return jnp.concatenate([first, rest])
+
+
+@eqx.filter_jit
+def _chain_log_density(model: GaussianAR2, Y: Array) -> Array:
+    """``log p(y_0)``, ``log p(y_1 | y_0)``, then the one-step terms: with ``S0 = L Lᵀ`` and
+    ``z = L⁻¹([y_0; y_1] − m0)``, the first ``D`` entries of ``z`` whiten ``y_0`` under its
+    marginal and the last ``D`` whiten ``y_1`` given ``y_0`` (``L`` is block lower
+    triangular)."""
+    D = Y.shape[1]
+    z = jax.scipy.linalg.solve_triangular(
+        model.chol0, jnp.concatenate([Y[0], Y[1]]) - model.m0, lower=True
+    )
+    logd = jnp.log(jnp.diag(model.chol0))
+    c = 0.5 * D * jnp.log(2.0 * jnp.pi)
+    first = -c - jnp.sum(logd[:D]) - 0.5 * jnp.sum(z[:D] ** 2)
+    second = -c - jnp.sum(logd[D:]) - 0.5 * jnp.sum(z[D:] ** 2)
+    rest = _gauss_logpdf(Y[2:] - _predict(model, Y), model.chol)
+    return jnp.concatenate([jnp.stack([first, second]), rest])
 
 
 def _check_seq(Y: ArrayLike, D: int | None, name: str) -> Array:

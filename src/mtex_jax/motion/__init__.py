@@ -1,17 +1,28 @@
-"""Motion data and its geometry: ``Motion``, ``Skeleton``, rotations, forward kinematics and
-the observation features (``FeatureMap``, MT §6.1, design §1).
+"""Motion data and its geometry: ``Motion``, ``Skeleton``, rotations, forward kinematics, the
+observation features (``FeatureMap``, MT §6.1, design §1), and the feet: which joints they are
+and when they touch the floor (``ContactModel``, design §10.4).
 """
 
-from ._features import (
-    FeatureMap as FeatureMap,
-    load_feature_map as load_feature_map,
+from ._channels import (
     raw_features as raw_features,
     unwrap_expmaps as unwrap_expmaps,
 )
+from ._contacts import (
+    ContactModel as ContactModel,
+    PenetrationResult as PenetrationResult,
+    SkatingResult as SkatingResult,
+    fit_contacts as fit_contacts,
+)
+from ._features import (
+    FeatureMap as FeatureMap,
+    load_feature_map as load_feature_map,
+)
 from ._feet import foot_joints as foot_joints
 from ._kinematics import (
+    as_motion_list as as_motion_list,
     forward_kinematics as forward_kinematics,
     forward_kinematics_arrays as forward_kinematics_arrays,
+    joint_positions as joint_positions,
 )
 from ._motion import (
     Motion as Motion,
@@ -40,15 +51,21 @@ from ._skeleton import (
 __all__ = [
     "POSITION_CHANNELS",
     "ROTATION_CHANNELS",
+    "ContactModel",
     "FeatureMap",
     "Motion",
+    "PenetrationResult",
+    "SkatingResult",
     "Skeleton",
+    "as_motion_list",
     "concatenate_motions",
     "expmap_to_quat",
+    "fit_contacts",
     "foot_joints",
     "forward_kinematics",
     "forward_kinematics_arrays",
     "ground_axes",
+    "joint_positions",
     "load_feature_map",
     "quat_conj",
     "quat_from_axis_angle",

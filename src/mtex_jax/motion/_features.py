@@ -35,124 +35,15 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float
 
-from ..core import load_arrays_json, save_arrays_json
+from ..core import as_array, bucket_length, load_arrays_json, pad_frames, save_arrays_json
+from ._channels import decode_raw, raw_features, unit_axis
 from ._kinematics import forward_kinematics_arrays
 from ._motion import Motion, check_compatible
-from ._rotation import (
-    expmap_to_quat,
-    quat_conj,
-    quat_mul,
-    quat_rotate,
-    quat_to_expmap,
-    quat_twist,
-    wrap_angle,
-    yaw_quat,
-)
 from ._skeleton import Skeleton, ground_axes
 
-__all__ = ["FeatureMap", "load_feature_map", "raw_features", "unwrap_expmaps"]
+__all__ = ["FeatureMap", "load_feature_map"]
 
 FORMAT_VERSION = 1
-
-
-def _unit(up: int) -> np.ndarray:
-    e = np.zeros(3)
-    e[up] = 1.0
-    return e
-
-
-def unwrap_expmaps(v: Float[ArrayLike, "T *n 3"]) -> Float[Array, "T *n 3"]:
-    """Make a sequence of exponential maps continuous in time (``lax.scan`` over frames).
-
-    For each frame, of the equivalent vectors ``(θ + 2πn) v/θ`` (``n`` integer) the one nearest
-    the previous output is chosen: ``n = round((û·v_prev − θ) / 2π)``. At the identity
-    (``θ < 1e-9``) the previous frame's axis is used.
-    """
-    v = jnp.asarray(v)
-
-    def step(prev, cur):
-        th = jnp.linalg.norm(cur, axis=-1, keepdims=True)
-        pn = jnp.linalg.norm(prev, axis=-1, keepdims=True)
-        ok = th > 1e-9
-        # at the identity the axis is free: take the previous one (identity = 2πn about it)
-        u_prev = jnp.where(pn > 1e-9, prev / jnp.where(pn > 1e-9, pn, 1.0), 0.0)
-        u = jnp.where(ok, cur / jnp.where(ok, th, 1.0), u_prev)
-        th = jnp.where(ok, th, 0.0)
-        n = jnp.round((jnp.sum(u * prev, axis=-1, keepdims=True) - th) / (2 * jnp.pi))
-        out = (th + 2 * jnp.pi * n) * u
-        return out, out
-
-    _, out = jax.lax.scan(step, v[0], v)
-    return out
-
-
-def raw_features(
-    root_positions: Float[ArrayLike, "T 3"],
-    rotations: Float[ArrayLike, "T J 4"],
-    local_positions: Float[ArrayLike, "T J 3"] | None = None,
-    *,
-    up_axis: int = 1,
-) -> Float[Array, "T R"]:
-    """All raw observation channels of one clip (see the module docstring), ``(T, R)``."""
-    rotations = jnp.asarray(rotations)
-    p = jnp.asarray(root_positions, dtype=rotations.dtype)
-    t = rotations.shape[0]
-    u, h0, h1 = ground_axes(up_axis)
-    up = jnp.asarray(_unit(up_axis), dtype=rotations.dtype)
-    q_root = rotations[:, 0]
-    psi = quat_twist(q_root, up)
-    q_yaw = yaw_quat(psi, up)
-    tilt = quat_mul(quat_conj(q_yaw), q_root)
-    if t > 1:
-        dp = p[1:] - p[:-1]
-        local = quat_rotate(quat_conj(q_yaw[:-1]), dp)
-        dh = jnp.stack([local[:, h0], local[:, h1]], axis=-1)
-        dh = jnp.concatenate([dh[:1], dh], axis=0)
-        dyaw = wrap_angle(psi[1:] - psi[:-1])
-        dyaw = jnp.concatenate([dyaw[:1], dyaw], axis=0)
-    else:
-        dh = jnp.zeros((1, 2), rotations.dtype)
-        dyaw = jnp.zeros((1,), rotations.dtype)
-    rots = jnp.concatenate([tilt[:, None], rotations[:, 1:]], axis=1)  # (T, J, 4)
-    em = unwrap_expmaps(quat_to_expmap(rots))
-    parts = [dh, p[:, u : u + 1], dyaw[:, None], em.reshape(t, -1)]
-    if local_positions is not None:
-        lp = jnp.asarray(local_positions, dtype=rotations.dtype)
-        parts.append(lp[:, 1:].reshape(t, -1))
-    return jnp.concatenate(parts, axis=1)
-
-
-def _decode_raw(
-    raw: Float[Array, "T R"],
-    n_joints: int,
-    has_lp: bool,
-    up_axis: int,
-    start_position: Float[Array, 3],
-    start_heading: Float[Array, ""],
-) -> tuple[Array, Array, Array | None]:
-    t = raw.shape[0]
-    u, h0, h1 = ground_axes(up_axis)
-    up = jnp.asarray(_unit(up_axis), dtype=raw.dtype)
-    dh = raw[:, 0:2]
-    height = raw[:, 2]
-    dyaw = raw[:, 3]
-    em = raw[:, 4 : 4 + 3 * n_joints].reshape(t, n_joints, 3)
-    psi = start_heading + jnp.concatenate([jnp.zeros((1,), raw.dtype), jnp.cumsum(dyaw[1:])])
-    q_yaw = yaw_quat(psi, up)
-    q = expmap_to_quat(em)
-    q_root = quat_mul(q_yaw, q[:, 0])
-    rotations = q.at[:, 0].set(q_root)
-    local = jnp.zeros((t, 3), raw.dtype).at[:, h0].set(dh[:, 0]).at[:, h1].set(dh[:, 1])
-    world = quat_rotate(q_yaw[:-1], local[1:])  # displacement of frame s uses heading s−1
-    horiz = jnp.concatenate([jnp.zeros((1, 3), raw.dtype), jnp.cumsum(world, axis=0)], axis=0)
-    pos = horiz + start_position.at[u].set(0.0)
-    pos = pos.at[:, u].set(height)
-    lp = None
-    if has_lp:
-        lp_raw = raw[:, 4 + 3 * n_joints :].reshape(t, n_joints - 1, 3)
-        lp = jnp.concatenate([jnp.zeros((t, 1, 3), raw.dtype), lp_raw], axis=1)
-        lp = lp.at[:, 0].set(pos)
-    return pos, rotations, lp
 
 
 class FeatureMap(eqx.Module):
@@ -289,7 +180,7 @@ class FeatureMap(eqx.Module):
 
         ``decode(encode(m), *fm.start_of(m))`` reproduces ``m``.
         """
-        up = _unit(self.skeleton.up_axis)
+        up = unit_axis(self.skeleton.up_axis)
         q0 = np.asarray(motion.rotations[0, 0], dtype=np.float64)
         heading = float(2.0 * np.arctan2(np.dot(q0[1:], up), q0[0]))
         heading = float((heading + np.pi) % (2 * np.pi) - np.pi)
@@ -315,7 +206,7 @@ class FeatureMap(eqx.Module):
         Returns:
             a :class:`Motion` with JAX arrays on this map's skeleton.
         """
-        Y = jnp.asarray(Y)
+        Y = as_array(Y)
         if Y.ndim != 2 or Y.shape[1] != self.dim:
             raise ValueError(f"decode: Y must have shape (T, {self.dim}), got {Y.shape}")
         if Y.shape[0] < 1:
@@ -327,8 +218,15 @@ class FeatureMap(eqx.Module):
         sh = jnp.zeros((), dtype) if start_heading is None else jnp.asarray(start_heading, dtype)
         if sh.shape != ():
             raise ValueError(f"decode: start_heading must be a scalar, got shape {sh.shape}")
-        pos, rot, lp = _decode(self, Y.astype(dtype), sp, sh)
-        return Motion(self.skeleton, self.fps, pos, rot, lp)
+        T = int(Y.shape[0])
+        try:  # a concrete Y is decoded in a shape bucket (design §11; the decoding is causal)
+            Yn = np.asarray(Y, dtype=dtype)
+        except jax.errors.TracerArrayConversionError:
+            pos, rot, lp = _decode(self, Y.astype(dtype), sp, sh)
+            return Motion(self.skeleton, self.fps, pos, rot, lp)
+        pos, rot, lp = _decode(self, pad_frames(Yn, bucket_length(T, DECODE_FRAMES)), sp, sh)
+        cut = lambda a: jax.device_put(np.asarray(a)[:T])
+        return Motion(self.skeleton, self.fps, cut(pos), cut(rot), None if lp is None else cut(lp))
 
     def joint_positions(
         self,
@@ -432,6 +330,9 @@ def _channel_names(sk: Skeleton, has_lp: bool) -> tuple[str, ...]:
 
 
 _BUCKET = 256
+# frames of the decoding's shape bucket (design §11): decoding is cheap, so one program serves
+# every motion of up to this many frames
+DECODE_FRAMES = 4096
 
 
 def _fit_inputs(motions: Motion | Sequence[Motion]) -> list[Motion]:
@@ -492,6 +393,6 @@ def _decode(fm: FeatureMap, Y: Array, sp: Array, sh: Array):
     sc = jnp.asarray(fm.scale, Y.dtype)
     raw = jnp.broadcast_to(off, (t, off.shape[0]))
     raw = raw.at[:, act].set(Y * sc[act] + off[act])
-    return _decode_raw(
+    return decode_raw(
         raw, fm.skeleton.n_joints, fm.has_local_positions, fm.skeleton.up_axis, sp, sh
     )

@@ -37,11 +37,10 @@ def _rest_heights(sk: Skeleton) -> np.ndarray:
     return pos[:, sk.up_axis]
 
 
-def _lowest_leaf_per_leg(sk: Skeleton) -> tuple[int, ...]:
+def _lowest_leaf_per_leg(sk: Skeleton, h: np.ndarray) -> tuple[int, ...]:
     children: list[list[int]] = [[] for _ in range(sk.n_joints)]
     for i, p in enumerate(sk.parents[1:], start=1):
         children[p].append(i)
-    h = _rest_heights(sk)
     branch = 0
     while len(children[branch]) == 1:
         branch = children[branch][0]
@@ -61,17 +60,25 @@ def _lowest_leaf_per_leg(sk: Skeleton) -> tuple[int, ...]:
     return tuple(sorted(leaves[:2]))
 
 
-def foot_joints(skeleton: Skeleton, names: Sequence[str] | None = None) -> tuple[int, ...]:
+def foot_joints(
+    skeleton: Skeleton,
+    names: Sequence[str] | None = None,
+    *,
+    heights: np.ndarray | None = None,
+) -> tuple[int, ...]:
     """Indices of the foot joints of a skeleton.
 
     By name: every joint whose name contains ``foot``, ``ankle`` or ``toe`` and has a side
     (left/right by the usual conventions: ``LeftFoot``, ``lFoot``, ``l_ankle``, ``foot_l``),
-    when both sides have at least one. Otherwise, the lowest leaf joint (in the rest pose) of
-    each of the two lowest subtrees below the first branching joint (the legs).
+    when both sides have at least one. Otherwise, from the skeleton's structure (any exporter's
+    names): the lowest leaf joint of each of the two lowest subtrees below the first branching
+    joint (the legs), lowest by ``heights`` when given (the training clips' median height of
+    every joint: what the figure stands on in its own motion), else in the rest pose.
 
     Args:
         skeleton: the figure.
         names: explicit joint names, overriding the rules.
+        heights: ``(J,)`` height of every joint (world up coordinate) ranking the leaves.
 
     Returns:
         Joint indices, increasing.
@@ -88,4 +95,9 @@ def foot_joints(skeleton: Skeleton, names: Sequence[str] | None = None) -> tuple
             found[side].append(i)
     if found["left"] and found["right"]:
         return tuple(sorted(found["left"] + found["right"]))
-    return _lowest_leaf_per_leg(skeleton)
+    if heights is None:
+        return _lowest_leaf_per_leg(skeleton, _rest_heights(skeleton))
+    h = np.asarray(heights, np.float64).reshape(-1)
+    if h.shape != (skeleton.n_joints,) or not np.isfinite(h).all():
+        raise ValueError(f"foot_joints: heights must be {skeleton.n_joints} finite numbers")
+    return _lowest_leaf_per_leg(skeleton, h)

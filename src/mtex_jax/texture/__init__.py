@@ -29,7 +29,6 @@ from ._learning.learn import (
 from ._model import (
     MotionTexture as MotionTexture,
     load_texture as load_texture,
-    texture_summary as texture_summary,
 )
 from ._noise.innovation_process import (
     InnovationProcess as InnovationProcess,
@@ -69,12 +68,17 @@ from ._segmentation.forward import (
     forward_log_likelihood as forward_log_likelihood,
     log_likelihood as log_likelihood,
 )
+from ._segmentation.many import (
+    log_likelihood_many as log_likelihood_many,
+    segment_many as segment_many,
+)
 from ._segmentation.segment import (
     Segmentation as Segmentation,
     segment as segment,
     segment_scorer as segment_scorer,
     viterbi_segments as viterbi_segments,
 )
+from ._summary import texture_summary as texture_summary
 from ._synthesis.choreograph import (
     choreograph as choreograph,
     match_texton as match_texton,
@@ -182,6 +186,7 @@ __all__ = [
     "learn_distributed",
     "load_texture",
     "log_likelihood",
+    "log_likelihood_many",
     "match_texton",
     "n_params",
     "observation_model",
@@ -196,6 +201,7 @@ __all__ = [
     "segment",
     "segment_innovations",
     "segment_log_likelihood",
+    "segment_many",
     "segment_scorer",
     "segment_scores",
     "shortest_path",

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from typing import Any
+from typing import Any, Literal, overload
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -14,13 +14,15 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, Float, Int
 
-from ..core import check_real, load_arrays_json, save_arrays_json
-from ..motion import FeatureMap, Motion
+from ..core import as_array, check_real, load_arrays_json, save_arrays_json
+from ..motion import ContactModel, FeatureMap, Motion
 from ._config import LearnConfig
 from ._noise.innovation_process import InnovationProcess
 from ._noise.residual_bank import ResidualBank
 from ._segmentation.forward import log_likelihood
-from ._segmentation.segment import Segmentation, segment
+from ._segmentation.many import log_likelihood_many, segment_many
+from ._segmentation.path_terms import best_path_terms
+from ._segmentation.segment import segment
 from ._texton.texton import Texton
 from ._texton.validate import TEXTURE_MEMBERS, check_texture_arrays
 from ._vocabulary import Vocabulary, vocabulary
@@ -53,6 +55,11 @@ class MotionTexture(eqx.Module):
         residuals: the :class:`ResidualBank` of the training residuals, or ``None``. When
             present (``LearnConfig.innovations == "residuals"``), :func:`synthesize` replays
             blocks of it instead of drawing from ``innovations``.
+        contacts: the :class:`~mtex_jax.motion.ContactModel` of the training clips (feet,
+            contact thresholds and the training floor, design §10.4) that
+            :func:`mtex_jax.edit.synthesize` with ``clean=True`` uses; fitted by :func:`learn`
+            from clips, ``None`` for a texture learned from observation arrays (static: it is
+            metadata, never traced).
         config: the :class:`LearnConfig` (static).
         threshold: the greedy-initialisation threshold used (static).
     """
@@ -71,6 +78,7 @@ class MotionTexture(eqx.Module):
     log_durations: Float[Array, "n L"] | None = None
     innovations: InnovationProcess | None = None
     residuals: ResidualBank | None = None
+    contacts: ContactModel | None = eqx.field(default=None, static=True)
 
     def __check_init__(self) -> None:
         n = self.textons.n_textons if self.textons.is_stacked else 1
@@ -103,6 +111,17 @@ class MotionTexture(eqx.Module):
             labels = self.residuals.labels
             if not isinstance(labels, Tracer) and np.asarray(labels).max() >= n:
                 raise ValueError(f"MotionTexture.residuals.labels outside [0, {n})")
+        if self.contacts is not None:
+            fm = self.feature_map
+            if not isinstance(self.contacts, ContactModel):
+                raise TypeError("MotionTexture.contacts must be a ContactModel or None")
+            if fm is None or not self.contacts.skeleton.same_structure(fm.skeleton):
+                raise ValueError("MotionTexture.contacts must be on the feature map's skeleton")
+            if float(self.contacts.fps) != float(fm.fps):
+                raise ValueError(
+                    f"MotionTexture.contacts are at {self.contacts.fps:g} Hz, the feature map "
+                    f"at {fm.fps:g} Hz"
+                )
 
     @property
     def n_textons(self) -> int:
@@ -135,19 +154,44 @@ class MotionTexture(eqx.Module):
             if self.feature_map is None:
                 raise ValueError("this texture was learned from arrays; pass observations Y")
             Y = self.feature_map.encode(Y)
-        y = jnp.asarray(Y)
+        y = as_array(Y)
         if y.ndim != 2 or y.shape[1] != self.obs_dim:
             raise ValueError(f"Y must have shape (T, {self.obs_dim}), got {tuple(y.shape)}")
         return y
 
-    def log_likelihood(self, Y: Float[Any, "T D"] | Motion, *, per_frame: bool = False) -> float:
+    def log_likelihood(
+        self,
+        Y: Float[Any, "T D"] | Motion | list[Any],
+        *,
+        mean: bool = False,
+        per_frame: bool = False,
+    ) -> Any:
         """Marginal ``log p(Y)`` over all segmentations and labels (design §10.1), in nats.
 
         The semi-Markov forward algorithm (:func:`~mtex_jax.texture.log_likelihood`); it is
-        ``≥`` :meth:`best_path_log_likelihood`. ``per_frame=True`` divides by the number of
-        frames ``T`` (every frame is scored: the first two of each segment by the texton's
+        ``≥`` :meth:`best_path_log_likelihood`. ``mean=True`` divides by the number of frames
+        ``T`` (every frame is scored: the first two of each segment by the texton's
         initial-state density). A density on the feature map's z-scored observation vectors.
+        A list of clips is scored in one call (:func:`~mtex_jax.texture.log_likelihood_many`,
+        design §11) and gives a ``(S,)`` array, one value per clip.
+
+        Raises:
+            ValueError: ``per_frame=True``: the marginal sums over every segmentation and has
+                no exact per-frame decomposition (use ``mean=True``, or the best path's
+                per-frame terms, :meth:`best_path_log_likelihood` with ``per_frame=True``).
         """
+        if per_frame:
+            raise ValueError(
+                "log_likelihood(per_frame=True): the marginal log p(Y) sums over all "
+                "segmentations and does not decompose exactly into per-frame terms; use "
+                "mean=True for nats per frame (the total divided by T), or "
+                "best_path_log_likelihood(Y, per_frame=True) for the per-frame terms of the "
+                "best segmentation"
+            )
+        if isinstance(Y, list | tuple):
+            ys = [self.observations(y) for y in Y]
+            lls = np.asarray(log_likelihood_many(*self._dp_args(ys)))
+            return lls / np.asarray([y.shape[0] for y in ys]) if mean else lls
         y = self.observations(Y)
         ll = log_likelihood(
             self.textons,
@@ -158,18 +202,45 @@ class MotionTexture(eqx.Module):
             self.config.tmax,
             log_durations=self.log_durations,
         )
-        return float(ll) / (y.shape[0] if per_frame else 1)
+        return float(ll) / (y.shape[0] if mean else 1)
+
+    @overload
+    def best_path_log_likelihood(
+        self, Y: Float[Any, "T D"] | Motion, *, mean: bool = ..., per_frame: Literal[False] = ...
+    ) -> float: ...
+
+    @overload
+    def best_path_log_likelihood(
+        self, Y: Float[Any, "T D"] | Motion, *, mean: bool = ..., per_frame: Literal[True]
+    ) -> np.ndarray: ...
 
     def best_path_log_likelihood(
-        self, Y: Float[Any, "T D"] | Motion, *, per_frame: bool = False
-    ) -> float:
+        self, Y: Float[Any, "T D"] | Motion, *, mean: bool = False, per_frame: bool = False
+    ) -> float | np.ndarray:
         """``log p(Y, best segmentation)``: the score of :meth:`segment` (the E-step's
-        objective), optionally divided by the number of frames."""
-        y = self.observations(Y)
-        return float(self.segment(y).score) / (y.shape[0] if per_frame else 1)
+        objective, design §3.1, §4.2), in nats.
 
-    def segment(self, Y: Float[Any, "T D"] | Motion) -> Segmentation:
-        """Optimal segmentation of observations ``Y (T, D)`` (or a :class:`Motion`)."""
+        ``mean=True`` divides it by the number of frames ``T``. ``per_frame=True`` returns its
+        exact decomposition ``(T,)`` (summing to the score): frame ``t`` of a segment
+        ``[b, e]`` of texton ``i`` gets its observation term, plus its dynamics term for
+        ``t ≥ b + 2``; the initial-state density of the segment's first two states is split
+        by the chain rule, ``log p(x_b)`` at ``b`` and ``log p(x_{b+1} | x_b)`` at ``b + 1``;
+        the segment's initial or transition log-probability (and its duration's, with
+        learned durations) is added at ``b``.
+        """
+        if mean and per_frame:
+            raise ValueError("mean=True and per_frame=True exclude each other")
+        y = self.observations(Y)
+        seg = self.segment(y)
+        if per_frame:
+            return best_path_terms(self, y, seg)
+        return float(seg.score) / (y.shape[0] if mean else 1)
+
+    def segment(self, Y: Float[Any, "T D"] | Motion | list[Any]) -> Any:
+        """Optimal segmentation of observations ``Y (T, D)`` (or a :class:`Motion`); of a list
+        of clips, a list of segmentations computed in one call (design §11)."""
+        if isinstance(Y, list | tuple):
+            return segment_many(*self._dp_args([self.observations(y) for y in Y]))
         y = self.observations(Y)
         return segment(
             self.textons,
@@ -179,6 +250,17 @@ class MotionTexture(eqx.Module):
             self.config.tmin,
             self.config.tmax,
             log_durations=self.log_durations,
+        )
+
+    def _dp_args(self, ys: list[Array]) -> tuple[Any, ...]:
+        return (
+            self.textons,
+            jnp.log(jnp.asarray(self.M)),
+            jnp.log(jnp.asarray(self.pi)),
+            ys,
+            self.config.tmin,
+            self.config.tmax,
+            self.log_durations,
         )
 
     # ------------------------------------------------------------------ files
@@ -228,10 +310,18 @@ class MotionTexture(eqx.Module):
             fa, fmeta = self.feature_map.to_arrays_json()
             arrays.update({f"feature_map.{k}": v for k, v in fa.items()})
             meta["feature_map"] = fmeta
+        if self.contacts is not None:  # on the feature map's skeleton, at its frame rate
+            arrays["contacts.height_threshold"] = np.asarray(self.contacts.height_threshold)
+            arrays["contacts.speed_threshold"] = np.asarray(self.contacts.speed_threshold)
+            meta["contacts"] = {
+                "feet": [int(f) for f in self.contacts.feet],
+                "floor": float(self.contacts.floor),
+            }
         save_arrays_json(path, arrays, meta)
 
 
 _REQUIRED = ("M", "pi", "key_poses", "key_pose_labels", "segment_lengths", "segments", "history")
+_CONTACT_MEMBERS = ("contacts.height_threshold", "contacts.speed_threshold")
 
 
 def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
@@ -243,7 +333,9 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
             arrays, NaN or inf values, a transition matrix or ``pi`` that is negative or not
             stochastic).
     """
-    arrays, meta = load_arrays_json(path, kind=_KIND, required=_REQUIRED, allowed=TEXTURE_MEMBERS)
+    arrays, meta = load_arrays_json(
+        path, kind=_KIND, required=_REQUIRED, allowed=(*TEXTURE_MEMBERS, *_CONTACT_MEMBERS)
+    )
     check_texture_arrays(path, arrays)
     if meta.get("format_version") != FORMAT_VERSION:
         raise ValueError(
@@ -289,6 +381,7 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
             ),
             innovations=_innovations_of(arrays),
             residuals=_residuals_of(arrays),
+            contacts=_contacts_of(arrays, meta, fm),
             config=cfg,
             threshold=check_real(meta["threshold"], "threshold", low=0.0),
         )
@@ -309,6 +402,35 @@ def _innovations_of(arrays: dict[str, np.ndarray]) -> InnovationProcess | None:
     )
 
 
+def _contacts_of(
+    arrays: dict[str, np.ndarray], meta: dict[str, Any], fm: FeatureMap | None
+) -> ContactModel | None:
+    """The file's training contacts, checked as a fitted :class:`ContactModel` is; ``None``
+    in files without them (learned from arrays, or written before textures carried them)."""
+    have = [k for k in _CONTACT_MEMBERS if k in arrays]
+    c = meta.get("contacts")
+    if not have and c is None:
+        return None
+    if len(have) != len(_CONTACT_MEMBERS) or not isinstance(c, dict):
+        raise ValueError(
+            f"contacts: the arrays {', '.join(_CONTACT_MEMBERS)} and the metadata 'contacts' "
+            "come together"
+        )
+    if fm is None:
+        raise ValueError("contacts: a texture without a feature map has no skeleton for them")
+    try:
+        return ContactModel(
+            fm.skeleton,
+            c["feet"],
+            arrays["contacts.height_threshold"],
+            arrays["contacts.speed_threshold"],
+            c["floor"],
+            fm.fps,
+        )
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"contacts: {e}") from None
+
+
 def _residuals_of(arrays: dict[str, np.ndarray]) -> ResidualBank | None:
     """The file's residual bank; ``None`` in files without one (its labels are checked
     against the textons by :class:`MotionTexture`)."""
@@ -327,31 +449,3 @@ def _residuals_of(arrays: dict[str, np.ndarray]) -> ResidualBank | None:
             jnp.asarray(arrays["residuals.segments"]) if "residuals.segments" in arrays else None
         ),
     )
-
-
-def texture_summary(tex: MotionTexture) -> str:
-    """A short human-readable description (used by the CLI)."""
-    st = tex.length_stats()
-    hist = np.asarray(tex.history)
-    lines = [
-        f"textons: {tex.n_textons}   segments: {len(np.asarray(tex.segments))}   "
-        f"state dim: {tex.config.state_dim}   D: {tex.obs_dim}   threshold: {tex.threshold:.4g}",
-        f"observation model: {tex.textons.observation}   innovations: "
-        + ("Gaussian" if tex.textons.dof is None else f"Student-t, {tex.textons.dof:g} dof"),
-        "synthesis innovations: "
-        + (
-            f"blocks of the {np.shape(tex.residuals.rows)[0]} training residuals"
-            if tex.residuals is not None
-            else "independent"
-            if tex.innovations is None
-            else "autocorrelation "
-            + ", ".join(f"{r:.2f}" for r in np.asarray(tex.innovations.acf))
-            + f"; scale persistence {float(tex.innovations.persistence):.3f}"
-        ),
-        f"segment lengths (frames): min {int(st[:, 3][st[:, 0] > 0].min())}  "
-        f"mean {np.asarray(tex.segment_lengths).mean():.1f}  max {int(st[:, 4].max())}  "
-        f"(tmin {tex.config.tmin}, tmax {tex.config.tmax})",
-        "objective per EM iteration (after M-step / after E-step):",
-    ]
-    lines += [f"  {i:2d}: {a:14.2f} / {b:14.2f}" for i, (a, b) in enumerate(hist)]
-    return "\n".join(lines)

@@ -38,6 +38,7 @@ from .._config import LearnConfig
 from .._model import MotionTexture
 from .._segmentation.segment import check_lengths
 from .._texton.texton import Texton
+from .contacts import with_contacts
 from .em import NO_PADDING, Capacity, Runner, warm_start
 from .init import Segs, greedy_init
 from .labels import capacity_for, transition_counts
@@ -417,7 +418,9 @@ def learn_distributed(
     Cloud TPU) a bare ``jax.distributed.initialize()`` finds them. ``mtex learn
     --distributed`` does this from flags or environment variables.
 
-    With a single process (no ``jax.distributed``) it equals :func:`learn`. The clips' content
+    With a single process (no ``jax.distributed``) it equals :func:`learn`, the clips'
+    contact model included; with several, the model carries none (no process sees every clip's
+    feet): pass one to ``clean`` (``mtex synth --clean --contacts``). The clips' content
     travels through JAX's collectives (on CPU: gloo over TCP); the processes must be
     trusted peers of one job.
 
@@ -446,10 +449,16 @@ def learn_distributed(
         thresholds = config.bic_thresholds or ()
         segs = {float(th): init[f"segs{i}"] for i, th in enumerate(thresholds)}
         _, table, models = threshold_bic(run, config, thresholds, segs.__getitem__, settings)
-        return _with_innovations(models[int(np.argmin([r["bic"] for r in table]))], run)
-    threshold = float(init["threshold"][0])
-    model = em_and_selection(run, config, threshold, init["segs0"], settings)
-    return _with_innovations(model, run)
+        model = models[int(np.argmin([r["bic"] for r in table]))]
+    else:
+        threshold = float(init["threshold"][0])
+        model = em_and_selection(run, config, threshold, init["segs0"], settings)
+    model = _with_innovations(model, run)
+    if jax.process_count() == 1:  # equals learn: the clips' contact model (design §6.6)
+        clips = [data] if isinstance(data, Motion) else list(data)
+        if clips and all(isinstance(c, Motion) for c in clips):
+            model = with_contacts(model, clips, verbose)
+    return model
 
 
 def _with_innovations(model: MotionTexture, run: _DistRunner) -> MotionTexture:

@@ -37,6 +37,7 @@ from .._noise.residual_bank import PLAUSIBLE_TAIL, plausible_bank
 from .._observation import FullObservation, observation_model
 from .._segmentation.segment import check_lengths
 from .._texton.select import choose_state_dim, n_params
+from .contacts import with_contacts
 from .em import PAD_E_STEP, Capacity, Runner
 from .init import (
     Segs,
@@ -179,6 +180,7 @@ def learn(
     Returns:
         the :class:`MotionTexture` of the EM iteration with the best objective
         ``max_H log P(Y, H | Θ, M)``; its ``segments`` are that model's optimal segmentation.
+        Learned from clips, it carries their contact model (``contacts``, design §6.6).
 
     Raises:
         ValueError: empty data, sequences shorter than ``tmin`` (or not segmentable into
@@ -187,7 +189,7 @@ def learn(
     config = LearnConfig() if config is None else config
     if not isinstance(config, LearnConfig):
         raise TypeError(f"config must be a LearnConfig, got {type(config).__name__}")
-    ys, fm, _ = check_data(data, config)
+    ys, fm, clips = check_data(data, config)
     check_lengths(config.tmin, config.tmax, max(y.shape[0] for y in ys))
     config = resolve_state_dim(ys, config, verbose)
     run = Runner(ys, config)
@@ -196,11 +198,11 @@ def learn(
         greedy = lambda th: greedy_init(ys, config, th)[0]
         _, table, models = threshold_bic(run, config, config.bic_thresholds, greedy, settings)
         best = int(np.argmin([r["bic"] for r in table]))
-        return with_innovations(models[best], ys)
+        return with_contacts(with_innovations(models[best], ys), clips, verbose)
     t0 = time.perf_counter()
     threshold, segs = greedy_segments(ys, config, verbose, t0)
     model = em_and_selection(run, config, threshold, segs, EMSettings(fm, verbose, callback, t0))
-    return with_innovations(model, ys)
+    return with_contacts(with_innovations(model, ys), clips, verbose)
 
 
 def with_innovations(

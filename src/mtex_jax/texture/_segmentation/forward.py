@@ -26,15 +26,19 @@ terms all underflow.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ...core import as_array, bucket_length, pad_frames
 from .._scoring.scores import SegmentScorer, segment_scores
+from .._texton.checks import check_obs
 from .._texton.texton import Texton
 from .segment import check_dp_inputs, end_start_parts
 
-__all__ = ["forward_log_likelihood", "log_likelihood"]
+__all__ = ["forward_log_likelihood", "log_likelihood", "padded_log_likelihood"]
 
 _GATHER_BUDGET = 1 << 21  # elements of one gathered (ends, starts, textons) chunk
 _FORCE_EXACT = False  # tests: always take the exact (slower) transition path
@@ -182,11 +186,15 @@ def log_likelihood(
         ValueError: bad shapes, ``tmin < 3``, ``tmax < tmin``, a sequence shorter than
             ``tmin``, non-finite ``Y``.
     """
-    Y = jnp.asarray(Y)
+    Y = as_array(Y)
     if Y.ndim != 2:
         raise ValueError(f"Y must have shape (T, D), got {Y.shape}")
     T = Y.shape[0]
-    tmin, tmax, log_M, log_pi = check_dp_inputs(textons, log_M, log_pi, T, tmin, tmax)
+    # padded to a shape bucket (design §11): one program per bucket, not per length
+    Tb = bucket_length(T)
+    tmin, tmax, log_M, log_pi = check_dp_inputs(
+        textons, log_M, log_pi, T, tmin, Tb if tmax is None else tmax
+    )
     if T < tmin:
         raise ValueError(f"sequence has {T} frames, shorter than tmin = {tmin}")
     n_t = log_pi.shape[0]
@@ -198,5 +206,23 @@ def log_likelihood(
                 f"log_durations must have shape ({n_t}, {tmax - tmin + 1}) "
                 f"(lengths {tmin}..{tmax}), got {dur.shape}"
             )
+    check_obs("Y", Y, textons.obs_dim, min_len=2)
+    return padded_log_likelihood(
+        textons, log_M, log_pi, pad_frames(Y, Tb), jax.device_put(np.asarray(T)), tmin, tmax, dur
+    )
+
+
+@eqx.filter_jit
+def padded_log_likelihood(
+    textons: Texton,
+    log_M: Array,
+    log_pi: Array,
+    Y: Array,
+    n_valid: Array,
+    tmin: int,
+    tmax: int,
+    log_durations: Array | None,
+) -> Array:
+    # the frame terms and the forward recursion as one program per shape bucket
     scorer = segment_scores(textons, Y)
-    return forward_log_likelihood(scorer, log_M, log_pi, jnp.asarray(T), tmin, tmax, dur)
+    return forward_log_likelihood(scorer, log_M, log_pi, n_valid, tmin, tmax, log_durations)

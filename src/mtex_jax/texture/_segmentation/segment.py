@@ -36,9 +36,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ...core import as_array, bucket_length, pad_frames
 from .._scoring.frame_terms import frame_coefs
 from .._scoring.packing import packed_scores_impl
 from .._scoring.scores import SegmentScorer, batch_scores_impl, segment_scores
+from .._texton.checks import check_obs
 from .._texton.texton import Texton
 
 __all__ = ["Segmentation", "segment", "segment_scorer", "viterbi_segments"]
@@ -303,7 +305,7 @@ def segment(
         ValueError: bad shapes, ``tmin < 3``, ``tmax < tmin``, a sequence shorter than
             ``tmin``, non-finite ``Y``.
     """
-    Y = jnp.asarray(Y)
+    Y = as_array(Y)
     if Y.ndim not in (2, 3):
         raise ValueError(f"Y must have shape (T, D) or (S, T, D), got {Y.shape}")
     batched = Y.ndim == 3
@@ -314,8 +316,29 @@ def segment(
     if not batched:
         if T < tmin:
             raise ValueError(f"sequence has {T} frames, shorter than tmin = {tmin}")
-        scorer = segment_scores(textons, Y)
-        return viterbi_segments(scorer, log_M, log_pi, jnp.asarray(T), tmin, tmax, log_d)
+        # padded to a shape bucket (design §11): one program per bucket, not per length
+        Tb = bucket_length(T)
+        if tmax_given is None:
+            tmax = Tb
+        check_obs("Y", Y, textons.obs_dim, min_len=2)
+        seg = _padded_segment(
+            textons,
+            log_M,
+            log_pi,
+            pad_frames(Y, Tb),
+            jax.device_put(np.asarray(T)),
+            tmin,
+            tmax,
+            log_d,
+        )
+        K = T // tmin + 1  # the slots of the unpadded sequence
+        return Segmentation(
+            starts=_head(seg.starts, K),
+            lengths=_head(seg.lengths, K),
+            labels=_head(seg.labels, K),
+            n_segments=seg.n_segments,
+            score=seg.score,
+        )
     S = Y.shape[0]
     nf = np.full(S, T) if n_frames is None else np.asarray(n_frames)
     if nf.shape != (S,):
@@ -326,6 +349,31 @@ def segment(
             f"sequence {k} has {int(nf[k])} frames; need tmin = {tmin} <= n_frames <= T = {T}"
         )
     return segment_batch(textons, log_M, log_pi, Y, jnp.asarray(nf), tmin, tmax, log_d)[0]
+
+
+@eqx.filter_jit
+def _padded_segment(
+    textons: Texton,
+    log_M: Array,
+    log_pi: Array,
+    Y: Array,
+    n_valid: Array,
+    tmin: int,
+    tmax: int,
+    log_durations: Array | None,
+) -> Segmentation:
+    # the frame terms and the Viterbi recursion as one program per shape bucket
+    scorer = segment_scores(textons, Y)
+    return viterbi_segments(scorer, log_M, log_pi, n_valid, tmin, tmax, log_durations)
+
+
+def _head(a: Array, k: int) -> Array:
+    """The first ``k`` entries of ``a`` (sliced on the host when concrete: no XLA program
+    per length)."""
+    try:
+        return jax.device_put(np.asarray(a)[:k])
+    except jax.errors.TracerArrayConversionError:
+        return a[:k]
 
 
 def _check_durations(

@@ -12,19 +12,10 @@ from ...core import check_key, limit
 from .._model import MotionTexture
 from .._scoring.frame_terms import frame_terms
 from .._scoring.frame_terms_ref import init_terms
+from .checks import check_n_frames, check_options, check_pair, check_texture, scale_lengths
 from .keyposes import key_pose_instances
 from .paths import path_of_length, shortest_path
-from .sequence import (
-    Residual,
-    Synthesis,
-    check_n_frames,
-    check_options,
-    check_pair,
-    check_texture,
-    finish,
-    scale_lengths,
-    synthesize_path,
-)
+from .sequence import Residual, Synthesis, finish, synthesize_path
 from .texton_synthesis import Weighting
 
 

@@ -8,7 +8,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ...core import bucket_length
 from .._model import MotionTexture
+
+
+def _uniform_impl(key: Array, n: int) -> Array:
+    return jax.random.uniform(key, (n,))
+
+
+_uniform = jax.jit(_uniform_impl, static_argnums=1)
 
 
 def next_segments(texture: MotionTexture) -> np.ndarray:
@@ -104,7 +112,11 @@ def key_pose_instances(texture: MotionTexture, key: Array | None, path: np.ndarr
     if key is None:
         tie = [np.abs(lengths[c] - np.median(lengths[c])) for c in cands]
     else:
-        u = np.asarray(jax.random.uniform(key, (path.size, max(c.size for c in cands))))
+        # uniform draws are prefix-stable in their flat index: drawn for a bucket of sizes
+        # (no program per path length, design §11) and cut to the (n, c) block
+        shape = (path.size, max(c.size for c in cands))
+        n = shape[0] * shape[1]
+        u = np.asarray(_uniform(key, bucket_length(n, 1 << 16)))[:n].reshape(shape)
         tie = [u[m, : c.size] for m, c in enumerate(cands)]
     kp = np.asarray(texture.key_poses, dtype=np.float64)
     kp = kp.reshape(kp.shape[0], -1)

@@ -30,7 +30,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
-from ...core import MAX_GENERATED_FRAMES, check_count, check_key, check_size
+from ...core import MAX_GENERATED_FRAMES, bucket_length, check_count, check_key, check_size
 from .._model import MotionTexture
 
 __all__ = ["path_cost", "path_of_length", "random_path", "shortest_path"]
@@ -93,6 +93,7 @@ def _walk(log_M: Array, first: Array, key: Array, n: int) -> Array:
 
 
 _walk_jit = jax.jit(_walk, static_argnums=3)
+_WALK_BUCKET = 128
 
 
 def random_path(
@@ -127,8 +128,11 @@ def random_path(
         first = jnp.asarray(_label("start", start, n))
     if n_textons == 1:
         return np.asarray([int(first)], dtype=np.int64)
-    out = _walk_jit(jnp.asarray(log_M), first.astype(jnp.int32), k_walk, int(n_textons))
-    return np.asarray(out, dtype=np.int64)
+    # drawn for a bucket of lengths (the walk's keys are prefix-stable), so that walks of
+    # other lengths do not compile again (design §11)
+    n_b = bucket_length(int(n_textons), _WALK_BUCKET)
+    out = _walk_jit(jnp.asarray(log_M), first.astype(jnp.int32), k_walk, n_b)
+    return np.asarray(out, dtype=np.int64)[: int(n_textons)]
 
 
 # --------------------------------------------------------------------------------------------

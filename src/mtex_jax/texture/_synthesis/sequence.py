@@ -29,8 +29,14 @@ A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthe
    root trajectory is integrated continuously from a start position and heading.
 
 All textons of a path are synthesised by one jit-compiled ``lax.map`` over the path with a
-common padded length (the end constraint sits at a per-texton row of a static-shaped mask),
-so paths with the same number of textons and similar lengths share one compilation.
+common padded length (the end constraint sits at a per-texton row of a static-shaped mask).
+Every synthesis of up to 4,096 frames is one size class (design §11): the path axis has the
+rows of a random path of that many frames (padded textons skip their solve), the per-texton
+length is a multiple of 64 frames and at least ``tmax + 2``, the random walk, the drawn
+durations and the decoding are padded the same way. So syntheses of any such length share one
+set of compiled programs, and the padding changes no result: the rows past a texton's end pair
+are held, the draws are prefix-stable, the decoding is causal. (A texture without a residual
+bank draws its innovations at the shapes they had before, to keep their values.)
 """
 
 from __future__ import annotations
@@ -44,19 +50,43 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ...core import MAX_GENERATED_FRAMES, check_count, check_key, check_size
+from ...core import (
+    check_key,
+    check_size,
+)
 from ...motion import Motion
 from .._model import MotionTexture
 from .._noise.draws import independent_innovations
 from .._noise.innovation_process import draw_innovations
 from .._noise.residual_bank import draw_residuals
 from .._texton.texton import Texton
+from .checks import (
+    check_lengths,
+    check_n_frames,
+    check_options,
+    check_pair,
+    check_texture,
+    scale_lengths,
+)
 from .keyposes import key_pose_instances, next_texton
 from .paths import random_path
 from .texton_synthesis import Weighting, constrained_texton
 
-_PAD_TEXTONS = 8  # the path axis is padded to a multiple of this (compilation sharing)
-_PAD_FRAMES = 16  # and the per-texton length to a multiple of this
+_PAD_TEXTONS = 16  # the path axis is padded to a multiple of this (compilation sharing)
+_PAD_FRAMES = 64  # and the per-texton length to a multiple of this
+# a synthesis of up to this many frames is one size class: its path, walk and decoding are
+# padded as for this many frames (one set of programs; the padded textons skip their solve)
+_CLASS_FRAMES = 4096
+
+
+def path_capacity(texture: MotionTexture, n: int) -> int:
+    """Rows of the padded path axis for a path of ``n`` textons: those of a random path of
+    ``_CLASS_FRAMES`` frames (at least), so that every synthesis of that size shares them."""
+    shortest = int(max(2, np.asarray(texture.segment_lengths).min()))
+    if texture.log_durations is not None:
+        shortest = min(shortest, int(texture.config.tmin))
+    return max(_round_up(_CLASS_FRAMES // shortest + 2, _PAD_TEXTONS), _round_up(n, _PAD_TEXTONS))
+
 
 Residual = Literal["blend", "subspace"]
 Replay = Literal["aligned", "shuffled"]
@@ -95,93 +125,21 @@ class Synthesis(eqx.Module):
         return np.asarray(self.starts)[1:]
 
 
-# --------------------------------------------------------------------------------------------
-# checks and key-pose instances
-# --------------------------------------------------------------------------------------------
-
-
-def check_texture(texture: MotionTexture) -> None:
-    if not isinstance(texture, MotionTexture):
-        raise TypeError(f"expected a MotionTexture, got {type(texture).__name__}")
-    labels = np.asarray(texture.key_pose_labels)
-    missing = np.setdiff1d(np.arange(texture.n_textons), labels)
-    if missing.size:
-        raise ValueError(
-            f"texton(s) {missing.tolist()} have no training segments (no key poses to start from)"
-        )
-    short = np.flatnonzero(np.asarray(texture.segment_lengths) < 2)
-    if short.size:
-        raise ValueError(
-            f"training segments {short[:5].tolist()} are shorter than 2 frames "
-            "(MotionTexture.segment_lengths)"
-        )
-
-
-def check_options(weighting: Any, residual: Any, replay: Any = "aligned") -> None:
-    if weighting not in ("whitened", "paper"):
-        raise ValueError(f"weighting must be 'whitened' or 'paper', got {weighting!r}")
-    if residual not in ("blend", "subspace"):
-        raise ValueError(f"residual must be 'blend' or 'subspace', got {residual!r}")
-    if replay not in ("aligned", "shuffled"):
-        raise ValueError(f"replay must be 'aligned' or 'shuffled', got {replay!r}")
-
-
 def _draw_durations(key: Array, texture: MotionTexture, path: np.ndarray) -> np.ndarray:
     """One length per texton of ``path`` from its fitted duration distribution on
     ``[tmin, tmax]`` (``texture.log_durations``)."""
     assert texture.log_durations is not None
-    log_d = jnp.asarray(texture.log_durations)[jnp.asarray(path)]
-    idx = jax.random.categorical(key, log_d, axis=-1)
-    return np.asarray(idx).astype(np.int64) + int(texture.config.tmin)
+    # the rows of a categorical draw are prefix-stable: drawn for a bucket of path entries
+    n = path.size
+    padded = np.concatenate([path, np.zeros(path_capacity(texture, n) - n, path.dtype)])
+    log_d = np.asarray(texture.log_durations)[padded]
+    idx = _categorical_rows(key, jnp.asarray(log_d))
+    return np.asarray(idx)[:n].astype(np.int64) + int(texture.config.tmin)
 
 
-def check_n_frames(n_frames: Any) -> int:
-    if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
-        raise TypeError(f"n_frames must be an int, got {n_frames!r}")
-    return check_count(n_frames, "n_frames", MAX_GENERATED_FRAMES, low=4)
-
-
-def check_pair(name: str, pose: Any, D: int) -> np.ndarray:
-    try:
-        p = np.asarray(pose, dtype=np.float64)
-    except (TypeError, ValueError) as e:
-        raise TypeError(f"{name} must be a (2, {D}) array of observation frames") from e
-    if p.shape != (2, D):
-        raise ValueError(f"{name} must have shape (2, {D}) (two observation frames), got {p.shape}")
-    if not np.isfinite(p).all():
-        raise ValueError(f"{name} contains NaN or inf")
-    return p
-
-
-def check_lengths(lengths: Any, n: int) -> np.ndarray:
-    arr = np.asarray(lengths)
-    if arr.shape != (n,) or not np.issubdtype(arr.dtype, np.integer):
-        raise ValueError(
-            f"lengths must be {n} integers (one per texton), got {arr.dtype} {arr.shape}"
-        )
-    longest = int(arr.max()) if arr.size else 0
-    check_size(longest, "synthesize: a texton's length", "MAX_GENERATED_FRAMES")
-    check_size(
-        int(arr.astype(np.int64).sum()), "synthesize: sum of lengths", "MAX_GENERATED_FRAMES"
-    )
-    return arr.astype(np.int64)
-
-
-def scale_lengths(lengths: np.ndarray, total: int, min_len: np.ndarray) -> np.ndarray:
-    """Integer lengths proportional to ``lengths`` that sum to ``total`` (each ≥ its minimum)."""
-    if total < int(min_len.sum()):
-        raise ValueError(
-            f"{total} frames are too few for {lengths.size} textons (need >= {int(min_len.sum())})"
-        )
-    out = np.maximum(np.floor(lengths * total / lengths.sum()).astype(np.int64), min_len)
-    while out.sum() != total:  # at most n corrections
-        diff = total - int(out.sum())
-        if diff > 0:
-            out[np.argmax(lengths * total / lengths.sum() - out)] += 1
-        else:
-            slack = np.where(out > min_len, out - lengths * total / lengths.sum(), -np.inf)
-            out[np.argmax(slack)] -= 1
-    return out
+@jax.jit
+def _categorical_rows(key: Array, logits: Array) -> Array:
+    return jax.random.categorical(key, logits, axis=-1)
 
 
 def _round_up(x: int, m: int) -> int:
@@ -202,12 +160,20 @@ def path_core(
     v: Float[Array, "n l2 k"],
     weighting: str,
     blend: bool,
+    n_real: Int[Array, ""] | None = None,
 ) -> Float[Array, "n l D"]:
     length = v.shape[1] + 2
     t = jnp.arange(length)
+    n_path = labels.shape[0]
+    real = jnp.arange(n_path) < (n_path if n_real is None else n_real)
 
     def one(args: tuple[Array, ...]) -> Array:
-        lab, s, e, at, vi = args
+        ok, lab, s, e, at, vi = args
+        return lax.cond(
+            ok, solve, lambda *a: jnp.zeros((length, s.shape[-1]), s.dtype), lab, s, e, at, vi
+        )
+
+    def solve(lab: Array, s: Array, e: Array, at: Array, vi: Array) -> Array:
         tex = jax.tree.map(lambda a: a[lab], textons)
 
         # rows from ``at`` on are held (the end pair, then frames that are dropped), so no
@@ -228,8 +194,9 @@ def path_core(
         r = jnp.where((t == at + 1)[:, None], re[1], r)
         return y + r
 
-    # lax.map (not vmap): one unbatched factorisation per texton (see _linalg's notes)
-    return lax.map(one, (labels, starts, ends, end_at, v))
+    # lax.map (not vmap): one unbatched factorisation per texton (see _linalg's notes); the
+    # padded entries past ``n_real`` skip it
+    return lax.map(one, (real, labels, starts, ends, end_at, v))
 
 
 _path_core_jit = eqx.filter_jit(path_core)
@@ -270,8 +237,11 @@ def synthesize_path(
     end_at = lengths.copy()
     if end_in_output:
         end_at[-1] -= 2
-    n_pad = _round_up(n, _PAD_TEXTONS)
-    l_pad = _round_up(int(end_at.max()) + 2, _PAD_FRAMES)
+    n_pad = path_capacity(texture, n)
+    longest = int(end_at.max()) + 2
+    if texture.config.tmax is not None:  # every drawn length fits one bucket
+        longest = max(longest, int(texture.config.tmax) + 2)
+    l_pad = _round_up(longest, _PAD_FRAMES)
     pad = n_pad - n
     lab_p = np.concatenate([path, np.zeros(pad, np.int64)]).astype(np.int32)
     st_p = np.concatenate([starts, np.repeat(starts[:1], pad, 0)])
@@ -286,23 +256,45 @@ def synthesize_path(
             if start is not None:  # the given start is not the instance's state
                 inst[0] = -1
         v = draw_residuals(key, texture.residuals, jnp.asarray(lab_p), l_pad - 2, dt, inst)
-    elif texture.innovations is None:
-        v = independent_innovations(key, (n_pad, l_pad - 2, k), dt, tex.dof)
-    else:  # each texton's stretch of innovations from the fitted process
-        v = draw_innovations(key, texture.innovations, (n_pad, l_pad - 2, k), dt, tex.dof)
+    else:
+        # these draws are not prefix-stable in the frame axis: drawn at the unbucketed shape
+        # (the path to a multiple of 8, the frames to a multiple of 16, as they always were),
+        # then padded with zeros to the bucket
+        shape = (_round_up(n, 8), _round_up(int(end_at.max()) + 2, 16) - 2, k)
+        dof = None if tex.dof is None else float(tex.dof)
+        v = _padded_draws(key, texture.innovations, shape, (n_pad, l_pad - 2), dt, dof)
+    put = jax.device_put  # jnp.asarray of a host array compiles a copy per shape
     out = _path_core_jit(
         tex,
-        jnp.asarray(lab_p),
-        jnp.asarray(st_p, dt),
-        jnp.asarray(en_p, dt),
-        jnp.asarray(at_p),
+        put(lab_p),
+        put(np.asarray(st_p, dt)),
+        put(np.asarray(en_p, dt)),
+        put(at_p),
         v,
         weighting,
         residual == "blend",
+        jax.device_put(np.asarray(n, np.int32)),
     )
     rows = np.repeat(np.arange(n), lengths)
     cols = np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
-    return out[jnp.asarray(rows), jnp.asarray(cols)]
+    return jax.device_put(np.asarray(out)[rows, cols])  # on the host: no program per length
+
+
+@eqx.filter_jit
+def _padded_draws(
+    key: Array,
+    process: Any,
+    shape: tuple[int, int, int],
+    padded: tuple[int, int],
+    dtype: Any,
+    dof: float | None,
+) -> Array:
+    """Innovations of the shape they always had, zero-padded to the bucket: one program."""
+    if process is None:
+        v = independent_innovations(key, shape, dtype, dof)
+    else:  # each texton's stretch of innovations from the fitted process
+        v = draw_innovations(key, process, shape, dtype, dof)
+    return jnp.pad(v, ((0, padded[0] - shape[0]), (0, padded[1] - shape[1]), (0, 0)))
 
 
 def finish(
@@ -320,10 +312,10 @@ def finish(
         motion = texture.feature_map.decode(Y, start_position, start_heading)
     return Synthesis(
         Y=Y,
-        path=jnp.asarray(path),
-        lengths=jnp.asarray(lengths),
-        starts=jnp.asarray(np.cumsum(lengths) - lengths),
-        key_segments=jnp.asarray(seg_idx),
+        path=jax.device_put(np.asarray(path)),
+        lengths=jax.device_put(np.asarray(lengths)),
+        starts=jax.device_put(np.cumsum(lengths) - lengths),
+        key_segments=jax.device_put(np.asarray(seg_idx)),
         motion=motion,
     )
 
@@ -427,7 +419,9 @@ def synthesize(
         if fitted:  # the shortest length the duration distributions allow
             shortest = min(shortest, int(texture.config.tmin))
         n_max = n_frames // shortest + 2
-        walk = random_path(k_path, texture, n_max, start=start_texton)
+        # drawn for the size class (prefix-stable): no program per length
+        walk = random_path(k_path, texture, path_capacity(texture, n_max), start=start_texton)
+        walk = walk[:n_max]
         walk_seg = key_pose_instances(texture, k_inst, walk)
         drawn = np.asarray(texture.segment_lengths)[walk_seg]
         if fitted:

@@ -14,6 +14,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array
 
+from ...core import as_array
 from ...linalg import sym as sym
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -38,7 +39,7 @@ def float_dtype(*xs: Any) -> Any:
 def as_float_array(name: str, x: Any, ndims: tuple[int, ...], shape_doc: str) -> Array:
     if x is None:
         raise ValueError(f"{name} must be an array of shape {shape_doc}, got None")
-    x = jnp.asarray(x)
+    x = as_array(x)
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
         raise ValueError(f"{name} must be real, got dtype {x.dtype}")
     if x.ndim not in ndims:
