@@ -83,24 +83,21 @@ def pad_frames(Y: Any, n: int, axis: int = -2) -> Any:
 
 class CompileCount:
     """What :func:`count_compiles` saw: ``programs``, the programs lowered to XLA (one per new
-    function and shape, whether or not the persistent cache then supplies the executable),
-    and ``backend``, the XLA compilations that actually ran (a cache hit runs none)."""
+    function and input shape, whether the executable is then compiled or loaded from the
+    persistent cache)."""
 
     programs: int = 0
-    backend: int = 0
 
 
 @contextmanager
 def count_compiles() -> Iterator[CompileCount]:
-    """Count the programs that the enclosed code lowers and compiles (JAX's monitoring
-    events; the same compilations that ``jax_log_compiles`` logs)."""
+    """Count the programs that the enclosed code lowers to XLA (JAX's monitoring events: the
+    compilations that ``jax_log_compiles`` logs)."""
     count = CompileCount()
 
     def listener(event: str, duration_secs: float, **kwargs: str | int) -> None:
         if event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
             count.programs += 1
-        elif event == "/jax/core/compile/backend_compile_duration":
-            count.backend += 1
 
     jax.monitoring.register_event_duration_secs_listener(listener)
     try:

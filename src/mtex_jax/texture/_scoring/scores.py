@@ -108,7 +108,7 @@ _score_jit = eqx.filter_jit(SegmentScorer._score)
 
 
 def segment_scores(
-    textons: Texton, Y: ArrayLike, *, block_size: int | None = None
+    textons: Texton, Y: ArrayLike, *, block_size: int | None = None, check: bool = True
 ) -> SegmentScorer:
     """Per-frame terms of all textons and their prefix sums, for O(1) segment scores.
 
@@ -121,6 +121,9 @@ def segment_scores(
         Y: observations ``(T, D)``, ``T >= 2``.
         block_size: frames per time block of the kernel (static); ``None`` chooses it from
             the cache size, as in :func:`frame_terms`.
+        check: check a traced ``Y`` for NaN/inf inside the program (``eqx.error_if``, a host
+            callback, which keeps the program out of JAX's persistent compilation cache);
+            ``False`` for a caller that checked it eagerly. A concrete ``Y`` is always checked.
 
     Returns:
         :class:`SegmentScorer` with arrays ``(N_t, T)`` / ``(N_t, T+1)``.
@@ -130,15 +133,19 @@ def segment_scores(
         textons = jax.tree.map(lambda a: a[None], textons)
     Y = check_obs("Y", Y, textons.obs_dim, min_len=2)
     block = block_frames(block_size, textons, Y)
-    return _segment_scores_jit(textons, Y, block)
+    return _segment_scores_jit(textons, Y, block, check)
 
 
-def _segment_scores_impl(textons: Texton, Y: Array, block: int | None = None) -> SegmentScorer:
+def _segment_scores_impl(
+    textons: Texton, Y: Array, block: int | None = None, check: bool = True
+) -> SegmentScorer:
     # all three terms by the blocked kernel of frame_terms; init_terms (per texton), the
     # per-texton algorithm, is the independent reference
     if block is None:
         block = block_frames(None, textons, Y)
-    dyn, obs, init = frame_terms_impl(textons, Y, min(block, Y.shape[0]), with_init=True)
+    dyn, obs, init = frame_terms_impl(
+        textons, Y, min(block, Y.shape[0]), with_init=True, check=check
+    )
     return scorer_from_terms(dyn, obs, init)
 
 

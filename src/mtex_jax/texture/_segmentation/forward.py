@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ...core import as_array, bucket_length, pad_frames
@@ -207,8 +208,12 @@ def log_likelihood(
                 f"(lengths {tmin}..{tmax}), got {dur.shape}"
             )
     check_obs("Y", Y, textons.obs_dim, min_len=2)
+    # a concrete Y was checked above: no in-program check (a host callback, which would keep
+    # the program out of the persistent compilation cache)
+    traced = isinstance(Y, Tracer)
+    n_valid = jax.device_put(np.asarray(T))
     return padded_log_likelihood(
-        textons, log_M, log_pi, pad_frames(Y, Tb), jax.device_put(np.asarray(T)), tmin, tmax, dur
+        textons, log_M, log_pi, pad_frames(Y, Tb), n_valid, tmin, tmax, dur, traced
     )
 
 
@@ -222,7 +227,10 @@ def padded_log_likelihood(
     tmin: int,
     tmax: int,
     log_durations: Array | None,
+    check: bool = False,
 ) -> Array:
-    # the frame terms and the forward recursion as one program per shape bucket
-    scorer = segment_scores(textons, Y)
+    """:func:`forward_log_likelihood` of the first ``n_valid`` frames of ``Y``, the frame terms
+    and the recursion as one program per shape bucket (design §11); ``check``: NaN/inf check
+    of ``Y`` inside the program."""
+    scorer = segment_scores(textons, Y, check=check)
     return forward_log_likelihood(scorer, log_M, log_pi, n_valid, tmin, tmax, log_durations)

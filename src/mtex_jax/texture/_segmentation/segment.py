@@ -34,6 +34,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ...core import as_array, bucket_length, pad_frames
@@ -321,16 +322,10 @@ def segment(
         if tmax_given is None:
             tmax = Tb
         check_obs("Y", Y, textons.obs_dim, min_len=2)
-        seg = _padded_segment(
-            textons,
-            log_M,
-            log_pi,
-            pad_frames(Y, Tb),
-            jax.device_put(np.asarray(T)),
-            tmin,
-            tmax,
-            log_d,
-        )
+        n_valid = jax.device_put(np.asarray(T))
+        traced = isinstance(Y, Tracer)  # a concrete Y was checked: no callback
+        Yp = pad_frames(Y, Tb)
+        seg = _padded_segment(textons, log_M, log_pi, Yp, n_valid, tmin, tmax, log_d, traced)
         K = T // tmin + 1  # the slots of the unpadded sequence
         return Segmentation(
             starts=_head(seg.starts, K),
@@ -361,9 +356,11 @@ def _padded_segment(
     tmin: int,
     tmax: int,
     log_durations: Array | None,
+    check: bool = False,
 ) -> Segmentation:
-    # the frame terms and the Viterbi recursion as one program per shape bucket
-    scorer = segment_scores(textons, Y)
+    # the frame terms and the Viterbi recursion as one program per shape bucket (no NaN/inf
+    # check inside for a Y checked eagerly: a host callback keeps a program out of the cache)
+    scorer = segment_scores(textons, Y, check=check)
     return viterbi_segments(scorer, log_M, log_pi, n_valid, tmin, tmax, log_durations)
 
 
