@@ -101,7 +101,7 @@ def worker(call: str, models: Path, loop: bool) -> dict:
         if call == "edit":
             sk = fm.skeleton
             hand = sk.names.index("rHand")  # the salsa skeleton's right hand
-            P = np.asarray(mj.motion.joint_positions(motion))
+            P = np.asarray(fm.joint_positions(Y[:n]))  # (T, J, 3)
             reach = 0.05 * float(np.ptp(P[0], axis=0).max())  # 5 % of the body's size
             target = P[n // 2, hand] + reach
             cons = mj.edit.make_constraints(sk, n, tex.obs_dim, positions=[(hand, n // 2, target)])
@@ -189,12 +189,15 @@ def main() -> None:
     rows = json.loads(old.read_text())["rows"] if old.exists() and args.calls != CALLS else {}
     for call in args.calls:  # a subset of calls is measured again into the existing results
         cache = Path(tempfile.mkdtemp(prefix="mtex_latency_cache_"))
-        cold = spawn(call, models, cache, loop=True)  # fills the cache
-        warm = spawn(call, models, cache, loop=False)
+        try:
+            cold = spawn(call, models, cache, loop=True)  # fills the cache
+            warm = spawn(call, models, cache, loop=False)
+        except RuntimeError as e:  # reported, and the other calls still measured
+            print(e, flush=True)
+            continue
         rows[call] = dict(cold=cold, warm=warm)
         print(call, json.dumps(rows[call]), flush=True)
-    load1 = os.getloadavg()
-    write(args.out, rows, load0, load1)
+        write(args.out, rows, load0, os.getloadavg())
 
 
 def write(out: Path, rows: dict, load0, load1) -> None:
