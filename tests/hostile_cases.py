@@ -461,6 +461,13 @@ _TEX: list[tuple[Any, ...]] = [
         True,
     ),
     (
+        "key_pose_labels-scalar",  # found by the fuzz: an IndexError before
+        {"key_pose_labels": lambda a: np.asarray(0, dtype=a["key_pose_labels"].dtype)},
+        None,
+        r"key_pose_labels must have shape \(n_segments,\)",
+        True,
+    ),
+    (
         "key_pose_labels-negative",
         {"key_pose_labels": lambda a: -np.ones_like(a["key_pose_labels"])},
         None,

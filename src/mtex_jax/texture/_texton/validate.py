@@ -176,6 +176,8 @@ def _check_structure(arrays: dict[str, np.ndarray], n: int) -> None:
     _check_dynamics(tf)
     kp = arrays.get("key_poses")
     labels = arrays.get("key_pose_labels")
+    if labels is not None and labels.ndim != 1:
+        raise ValueError(f"key_pose_labels must have shape (n_segments,), got {labels.shape}")
     if kp is not None and labels is not None and kp.shape != (labels.shape[0], 2, D):
         raise ValueError(f"key_poses must have shape ({labels.shape[0]}, 2, {D}), got {kp.shape}")
     lengths = arrays.get("segment_lengths")
