@@ -13,8 +13,9 @@ from jax.sharding import Mesh, PartitionSpec
 
 from ..motion import FeatureMap, Motion
 from ..texture import MotionTexture, Synthesis
+from ._bucket import solve_gn_bucketed
 from ._constraints import Constraints, EditWeights
-from ._gn import solve_edit_gn, solve_edit_gn_jit
+from ._gn import solve_edit_gn
 from ._prior import FrameSegments, WhitenedTextons, frame_segments
 from ._solve import EditResult, bfgs_polish, problem, solve_edit
 
@@ -110,7 +111,7 @@ def observations_of(
         sp, sh = start_position, start_heading
     if not jnp.issubdtype(Y.dtype, jnp.floating):
         Y = Y.astype(jnp.result_type(float))
-    if not bool(jnp.all(jnp.isfinite(Y))):
+    if not np.isfinite(np.asarray(Y)).all():  # on the host: no program per length
         raise ValueError("motion: observation vectors contain NaN or inf")
     sp = jnp.zeros(3, Y.dtype) if sp is None else jnp.asarray(sp, Y.dtype)
     sh = jnp.zeros((), Y.dtype) if sh is None else jnp.asarray(sh, Y.dtype)
@@ -182,7 +183,8 @@ def edit(
     held; :mod:`mtex_jax.edit._gn`), fast and the default; ``"lm"``, Levenberg–Marquardt
     (optimistix) in whitened variables with conjugate gradients, BFGS run from where it
     stopped if it did not converge (``fallback``); ``"auto"`` takes ``"gn"`` unless there are
-    velocity targets. The solve is jit-compiled once per shape.
+    velocity targets. The Gauss–Newton solve is jit-compiled once per bucket of lengths
+    (:func:`~mtex_jax.edit._bucket.edit_length`), Levenberg–Marquardt once per shape.
 
     Args:
         texture: the motion texture (its textons are the prior; its feature map decodes).
@@ -226,7 +228,7 @@ def edit(
     if _solver(solver, cons) == "gn":
         if not relative:
             raise ValueError("relative=False needs solver='lm'")
-        return solve_edit_gn_jit(
+        return solve_gn_bucketed(
             fm, tx, seg, Y, sp, sh, cons, w, keep=keep, rounds=rounds, max_steps=max_steps
         )
     kw: dict[str, Any] = dict(keep=keep, relative=bool(relative))

@@ -212,6 +212,7 @@ def solve_banded(
     *,
     move_root: tuple[tuple[int, int], tuple[int, int]] | None = None,
     root_smooth: float | Array = 0.0,
+    n_valid: Int[Array, ""] | int | None = None,
     rounds: int = 3,
     max_steps: int = 8,
     rtol: float = 1e-6,
@@ -240,6 +241,8 @@ def solve_banded(
             caller turns it into the root channels (:func:`mtex_jax.edit._gn.apply_shift`).
             Frames stay independent: the offset moves every joint of its frame alike.
         root_smooth: weight of the offset's second difference.
+        n_valid: the motion's own frames (the rest pad it to a shape bucket and are held);
+            the offset's smoothness stops there. ``None``: all ``T``.
         rounds: multiplier rounds (``≥ 1``).
         max_steps: Gauss–Newton steps per round.
         rtol: relative change of the cost below which a round stops.
@@ -258,7 +261,7 @@ def solve_banded(
         (c0, c1), _ = move_root
         e = jnp.zeros((D,), dt).at[jnp.array([c0, c1])].set(1.0)
         ee = jnp.asarray(root_smooth, dt) ** 2 * jnp.diag(e)
-        sm = smoothness_hessian(T, D, dt)
+        sm = smoothness_hessian(T, D, dt, n_valid)
         bands = (bands[0] + sm[0] * ee, bands[1] + sm[1] * ee, bands[2] + sm[2] * ee)
         var_ch = free_ch + e
 

@@ -19,10 +19,9 @@ import itertools
 import os
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
-from ..core import load_arrays_json, save_arrays_json
+from ..core import as_array, load_arrays_json, save_arrays_json
 from ..metrics import ContactModel, PenetrationResult, SkatingResult
 from ..motion import Motion, Skeleton
 from ..texture import MotionTexture, Synthesis
@@ -35,8 +34,8 @@ from ._api import (
     segments_of,
 )
 from ._banded import PointTargets
+from ._bucket import solve_gn_bucketed
 from ._constraints import EditWeights, make_constraints
-from ._gn import solve_edit_gn_jit
 from ._prior import WhitenedTextons
 from ._solve import EditResult, sub_skeleton
 
@@ -358,15 +357,16 @@ def clean(
         _, order = sub_skeleton(fm.skeleton, keep)  # the solve's kept joints, in order
         slots = np.searchsorted(np.array(order), np.array(contacts.feet))
         T, F = swing.shape
-        extra = PointTargets(
-            slot=jnp.asarray(np.tile(slots, T), jnp.int32),
-            frame=jnp.asarray(np.repeat(np.arange(T), F), jnp.int32),
-            target=jnp.asarray(tgt.reshape(T * F, 3), Y.dtype),
-            weight=jnp.asarray(np.repeat(swing.reshape(-1, 1) * swing_weight, 3, 1), Y.dtype),
-            exact=jnp.zeros(T * F, bool),
+        dt = np.dtype(Y.dtype)
+        extra = PointTargets(  # transferred, not jnp.asarray: no copy program per length
+            slot=as_array(np.tile(slots, T).astype(np.int32)),
+            frame=as_array(np.repeat(np.arange(T), F).astype(np.int32)),
+            target=as_array(tgt.reshape(T * F, 3).astype(dt)),
+            weight=as_array(np.repeat(swing.reshape(-1, 1) * swing_weight, 3, 1).astype(dt)),
+            exact=as_array(np.zeros(T * F, bool)),
         )
         tx = WhitenedTextons.of(texture.textons, Y.dtype)
-        res = solve_edit_gn_jit(
+        res = solve_gn_bucketed(
             fm,
             tx,
             seg,

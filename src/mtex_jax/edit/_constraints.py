@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ..core import as_array
 from ..motion import Skeleton
 
 __all__ = ["Constraints", "EditWeights", "make_constraints"]
@@ -241,6 +242,7 @@ def make_constraints(
         lift_arr = la
     if floor is not None and not np.isfinite(float(floor)):
         raise ValueError(f"{where}: floor must be finite, got {floor}")
+    # the per-frame arrays with as_array: jnp.asarray of a NumPy array compiles a copy per length
     return Constraints(
         joints=jnp.asarray(np.array(pj + [0] * pad, np.int32)),
         frames=jnp.asarray(np.array(pf + [0] * pad, np.int32)),
@@ -250,12 +252,12 @@ def make_constraints(
         vel_frames=jnp.asarray(np.array(vf, np.int32).reshape(-1)),
         vel_targets=jnp.asarray(np.array(vt).reshape(len(vj), 3)),
         vel_active=jnp.ones(len(vj), bool),
-        pose_mask=jnp.asarray(mask),
-        poses=jnp.asarray(pose_arr),
-        plant=jnp.asarray(plant),
-        plant_height=jnp.asarray(height),
+        pose_mask=as_array(mask),
+        poses=as_array(pose_arr),
+        plant=as_array(plant),
+        plant_height=as_array(height),
         floor=jnp.asarray(0.0 if floor is None else float(floor)),
         floor_on=jnp.asarray(floor is not None),
-        lift=jnp.asarray(lift_arr),
+        lift=as_array(lift_arr),
         feet=tuple(foot_idx),
     )

@@ -113,6 +113,7 @@ def solve_edit_gn(
     *,
     keep: tuple[int, ...] = (),
     extra: PointTargets | None = None,
+    n_valid: Any = None,
     move_root: bool = False,
     root_smooth: float = 10.0,
     rounds: int = 3,
@@ -128,6 +129,9 @@ def solve_edit_gn(
         keep: joints whose world positions are computed (with their ancestors).
         extra: further point targets (their ``slot`` indexes the kept joints in order), e.g.
             the guidance of swing feet when cleaning.
+        n_valid: the motion's own frames when it is padded to a shape bucket
+            (:func:`~mtex_jax.edit._bucket.solve_gn_bucketed`: the padding frames are held by
+            ``cons.pose_mask``, and have no prior, smoothness or floor terms); ``None``: all.
         move_root: let the root's horizontal trajectory change too, as a smooth world offset
             per frame (:func:`~mtex_jax.edit._banded.solve_banded`); the root channels and the
             start position of the result are re-derived from it (``result.start_position``).
@@ -140,10 +144,13 @@ def solve_edit_gn(
     """
     if np.shape(cons.vel_joints)[-1]:
         raise ValueError("the banded Gauss-Newton solver does not take velocity targets")
-    prob = problem(fm, tx, seg, Y0, start_position, start_heading, cons, weights, True, keep)
+    prob = problem(
+        fm, tx, seg, Y0, start_position, start_heading, cons, weights, True, keep, n_valid
+    )
     w, dt = prob.w, Y0.dtype
     T, D = Y0.shape
-    pr, sm = prior_hessian(tx, seg, dt), smoothness_hessian(T, D, dt)
+    pr = prior_hessian(tx, seg, dt, prob.n_valid)
+    sm = smoothness_hessian(T, D, dt, prob.n_valid)
     bands = tuple((w.prior**2) * pr[i] + (w.smooth**2) * sm[i] for i in range(3))
     bands = (bands[0], bands[1], bands[2])
     free_ch = jnp.asarray(root_free_channels(fm), dt)
@@ -152,6 +159,7 @@ def solve_edit_gn(
     points, lower = constraint_points(fm, cons, prob.keep, fn(Y0), prob.plant_h, w)
     if extra is not None:
         points = join_points(points, extra)
+    lower = jnp.where((jnp.arange(T) < prob.n_valid)[:, None], lower, -jnp.inf)
     roots = root_channels(fm) if move_root else None
     sol = solve_banded(
         fn,
@@ -167,6 +175,7 @@ def solve_edit_gn(
         fm.skeleton.up_axis,
         move_root=roots,
         root_smooth=root_smooth,
+        n_valid=prob.n_valid,
         rounds=rounds,
         max_steps=max_steps,
         rtol=rtol,

@@ -33,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from ..core import as_array
+
 __all__ = ["FrameSegments", "WhitenedTextons", "frame_segments", "prior_residuals"]
 
 _REL_FLOOR = 1e-6  # relative floor of Cholesky diagonals (B, chol S0)
@@ -80,10 +82,11 @@ def frame_segments(lengths: np.ndarray, labels: np.ndarray) -> FrameSegments:
     prev = np.repeat(np.concatenate([lab[:1], lab[:-1]]), ln)
     pos = np.concatenate([np.arange(n) for n in ln])
     dyn = np.where(pos >= 2, per, prev)
+    # as_array: jnp.asarray with a dtype compiles a conversion for every new length
     return FrameSegments(
-        labels=jnp.asarray(per, jnp.int32),
-        dyn_labels=jnp.asarray(dyn, jnp.int32),
-        position=jnp.asarray(pos, jnp.int32),
+        labels=as_array(per.astype(np.int32)),
+        dyn_labels=as_array(dyn.astype(np.int32)),
+        position=as_array(pos.astype(np.int32)),
     )
 
 
@@ -159,18 +162,29 @@ def _shift(a: Array, n: int) -> Array:
     return jnp.concatenate([jnp.broadcast_to(a[:1], (n, *a.shape[1:])), a[:-n]], axis=0)
 
 
+def _valid(T: int, n_valid: Int[Array, ""] | int | None) -> Array:
+    """``(T,)`` whether each frame is one of the first ``n_valid`` (all when ``None``)."""
+    t = jnp.arange(T)
+    return t < (T if n_valid is None else n_valid)
+
+
 def prior_residuals(
-    tx: WhitenedTextons, seg: FrameSegments, Y: Float[Array, "T D"]
+    tx: WhitenedTextons,
+    seg: FrameSegments,
+    Y: Float[Array, "T D"],
+    n_valid: Int[Array, ""] | int | None = None,
 ) -> tuple[Float[Array, "T k"], Float[Array, "T k2"], Float[Array, "T D"]]:
     """Whitened dynamics, initial-pair and out-of-subspace residuals ``(e, g, o)`` (module doc).
 
-    Rows whose term does not exist (dynamics at ``t < 2``, initial pair where ``s_t ≠ 1``) are
-    zero.
+    Rows whose term does not exist (dynamics at ``t < 2``, initial pair where ``s_t ≠ 1``,
+    every term of a padding frame ``t ≥ n_valid``) are zero.
 
     Args:
         tx: whitened textons.
         seg: per-frame segmentation of ``Y``.
         Y: ``(T, D)`` observations.
+        n_valid: the motion's own frames, the first ``n_valid`` of ``Y`` (the rest pad it to a
+            shape bucket, design §11); ``None``: all ``T``.
 
     Returns:
         ``e (T, k)``, ``g (T, 2k)``, ``o (T, D)``; ``½(‖e‖² + ‖g‖² + ‖o‖²)`` is the prior's
@@ -190,7 +204,8 @@ def prior_residuals(
         - tx.d[dyn]
     )
     e = jnp.einsum("tkl,tl->tk", tx.B_inv[dyn], inn)
-    e = jnp.where((jnp.arange(T) >= 2)[:, None], e, 0.0)
+    ok = _valid(T, n_valid)
+    e = jnp.where(((jnp.arange(T) >= 2) & ok)[:, None], e, 0.0)
     # own texton: initial pair and the part outside the subspace
     Ci, mui = tx.C[own], tx.mu[own]
     yc = Y - mui
@@ -198,19 +213,22 @@ def prior_residuals(
     xi_prev = proj(Y1, Ci, mui)
     pair = jnp.concatenate([xi_prev, xi], axis=1) - tx.m0[own]
     g = jnp.einsum("tkl,tl->tk", tx.L0_inv[own], pair)
-    g = jnp.where((seg.position == 1)[:, None], g, 0.0)
+    g = jnp.where(((seg.position == 1) & ok)[:, None], g, 0.0)
     o = (yc - jnp.einsum("tdk,tk->td", Ci, xi)) * tx.inv_sigma[own][:, None]
-    return e, g, o
+    return e, g, jnp.where(ok[:, None], o, 0.0)
 
 
 def prior_hessian(
-    tx: WhitenedTextons, seg: FrameSegments, dtype
+    tx: WhitenedTextons, seg: FrameSegments, dtype, n_valid: Int[Array, ""] | int | None = None
 ) -> tuple[Float[Array, "T D D"], Float[Array, "T D D"], Float[Array, "T D D"]]:
     """The prior's (constant) Hessian ``RᵀR`` as three bands of ``D × D`` blocks.
 
     The residuals of :func:`prior_residuals` are ``R y + const`` with per-frame coefficient
     blocks ``e_t = G0_t y_t + G1_t y_{t−1} + G2_t y_{t−2}``, ``g_t = K1_t y_{t−1} + K0_t y_t``,
     ``o_t = O_t y_t``; so ``RᵀR`` is block-banded with bandwidth two frames.
+
+    With ``n_valid`` (a motion padded to a shape bucket), the padding frames' terms are left
+    out, so the first ``n_valid`` frames do not interact with the padding.
 
     Returns:
         ``(H0, H1, H2)``: ``H0[t] = (RᵀR)[t, t]``, ``H1[t] = (RᵀR)[t, t−1]`` (row 0 zero),
@@ -224,17 +242,18 @@ def prior_hessian(
     G0 = Bi @ Ct
     G1 = -(Bi @ tx.A1.astype(dtype)) @ Ct
     G2 = -(Bi @ tx.A2.astype(dtype)) @ Ct
-    has_dyn = (jnp.arange(T) >= 2)[:, None, None]
+    ok = _valid(T, n_valid)
+    has_dyn = ((jnp.arange(T) >= 2) & ok)[:, None, None]
     G0, G1, G2 = (jnp.where(has_dyn, a[dyn], 0.0) for a in (G0, G1, G2))
     L0i = tx.L0_inv.astype(dtype)
     K1 = L0i[:, :, :k] @ Ct
     K0 = L0i[:, :, k:] @ Ct
-    has_init = (seg.position == 1)[:, None, None]
+    has_init = ((seg.position == 1) & ok)[:, None, None]
     K1, K0 = (jnp.where(has_init, a[own], 0.0) for a in (K1, K0))
     D = Ct.shape[-1]
     C = tx.C.astype(dtype)
     proj = (jnp.eye(D, dtype=dtype) - C @ Ct) * (tx.inv_sigma.astype(dtype) ** 2)[:, None, None]
-    OtO = proj[own]  # (I − CCᵀ)ᵀ(I − CCᵀ)/σ² = (I − CCᵀ)/σ²
+    OtO = proj[own] * ok[:, None, None]  # (I − CCᵀ)ᵀ(I − CCᵀ)/σ² = (I − CCᵀ)/σ²
     tt = lambda a, b: jnp.einsum("tkd,tke->tde", a, b)
     nxt = lambda a, n: jnp.concatenate([a[n:], jnp.zeros((n, *a.shape[1:]), a.dtype)], axis=0)
     H0 = tt(G0, G0) + nxt(tt(G1, G1), 1) + nxt(tt(G2, G2), 2) + tt(K0, K0)
@@ -244,11 +263,15 @@ def prior_hessian(
     return H0, H1, H2
 
 
-def smoothness_hessian(T: int, D: int, dtype) -> tuple[Array, Array, Array]:
+def smoothness_hessian(
+    T: int, D: int, dtype, n_valid: Int[Array, ""] | int | None = None
+) -> tuple[Array, Array, Array]:
     """Bands of ``ΔᵀΔ`` for the second difference ``(Δy)_t = y_t − 2 y_{t−1} + y_{t−2}``
-    (``t ≥ 2``), as multiples of ``I_D`` (same layout as :func:`prior_hessian`)."""
+    (``2 ≤ t < n_valid``, default ``T``), as multiples of ``I_D`` (same layout as
+    :func:`prior_hessian`)."""
     t = jnp.arange(T)
-    has = lambda s: ((s >= 2) & (s < T)).astype(dtype)
+    end = T if n_valid is None else n_valid
+    has = lambda s: ((s >= 2) & (s < end)).astype(dtype)
     d0 = has(t) + 4.0 * has(t + 1) + has(t + 2)
     d1 = -2.0 * has(t) - 2.0 * has(t + 1)
     d2 = has(t)

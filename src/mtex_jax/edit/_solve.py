@@ -160,6 +160,7 @@ class _Problem(eqx.Module):
     plant_h: Array
     root0: Array
     w: EditWeights
+    n_valid: Array  # the motion's own frames (the rest pad it to a shape bucket)
     sub: Skeleton = eqx.field(static=True)
     keep: tuple[int, ...] = eqx.field(static=True)
 
@@ -220,9 +221,10 @@ def _measure(prob: _Problem, Y: Array) -> dict[str, Array]:
     F = P[:, list(c.feet)]
     speed = jnp.linalg.norm((F[1:] - F[:-1])[..., jnp.array([h0, h1])], axis=-1) * prob.fm.fps
     herr = jnp.maximum(jnp.abs(F[:-1, :, up] - prob.plant_h), jnp.abs(F[1:, :, up] - prob.plant_h))
-    depth = jnp.max(jnp.maximum(c.floor - P[:, list(prob.keep), up], 0.0))
+    own = (jnp.arange(P.shape[0]) < prob.n_valid)[:, None]
+    depth = jnp.max(jnp.where(own, jnp.maximum(c.floor - P[:, list(prob.keep), up], 0.0), 0.0))
     depth = jnp.where(c.floor_on, depth, 0.0)
-    pri = prior_residuals(prob.tx, prob.seg, Y)
+    pri = prior_residuals(prob.tx, prob.seg, Y, prob.n_valid)
     return dict(
         position_error=jnp.where(c.active, pe, 0.0),
         velocity_error=jnp.where(c.vel_active, ve, 0.0),
@@ -252,22 +254,33 @@ def sub_skeleton(skeleton: Skeleton, joints: tuple[int, ...]) -> tuple[Skeleton,
     return sub, order
 
 
-def problem(fm, tx, seg, Y0, sp, sh, cons, w, relative: bool, keep) -> _Problem:
-    """The residual form of one edit (whitening factored, plant heights resolved)."""
+def problem(
+    fm, tx, seg, Y0, sp, sh, cons, w, relative: bool, keep, n_valid: Any = None
+) -> _Problem:
+    """The residual form of one edit (whitening factored, plant heights resolved).
+
+    ``n_valid``: the motion's own frames when ``Y0`` is padded to a shape bucket (the padding
+    frames must be held by ``cons.pose_mask``; their prior and floor terms are left out).
+    """
     dtype = Y0.dtype
+    T, D = Y0.shape
+    n_valid = jnp.asarray(T if n_valid is None else n_valid, jnp.int32)
     sub, keep = sub_skeleton(fm.skeleton, keep)
     w = jax.tree.map(lambda a: jnp.asarray(a, dtype), w)
-    r0, pull = jax.vjp(lambda y: prior_residuals(tx, seg, y), Y0)
+    r0, pull = jax.vjp(lambda y: prior_residuals(tx, seg, y, n_valid), Y0)
     if relative:
         linear = jnp.zeros_like(Y0)
     else:
         (linear,) = pull(r0)
         linear = (w.prior**2) * linear
         r0 = (jnp.zeros_like(r0[0]), jnp.zeros_like(r0[1]), jnp.zeros_like(r0[2]))
-    T, D = Y0.shape
     bands = tuple(
         (w.prior**2) * a + (w.smooth**2) * b
-        for a, b in zip(prior_hessian(tx, seg, dtype), smoothness_hessian(T, D, dtype), strict=True)
+        for a, b in zip(
+            prior_hessian(tx, seg, dtype, n_valid),
+            smoothness_hessian(T, D, dtype, n_valid),
+            strict=True,
+        )
     )
     held = cons.pose_mask
     delta = jnp.where(held[:, None], cons.poses.astype(dtype) - Y0, 0.0)
@@ -275,7 +288,7 @@ def problem(fm, tx, seg, Y0, sp, sh, cons, w, relative: bool, keep) -> _Problem:
     anchor = jnp.where(jnp.asarray(is_root), jnp.hypot(w.anchor, w.root), w.anchor)
     wh = whitening_each(bands, anchor, held, delta, linear)
     zero = jnp.zeros((), dtype)
-    prob = _Problem(fm, tx, seg, wh, Y0, r0, sp, sh, cons, zero, zero, w, sub, keep)
+    prob = _Problem(fm, tx, seg, wh, Y0, r0, sp, sh, cons, zero, zero, w, n_valid, sub, keep)
     P0, root0 = prob.kinematics(Y0)
     h_orig = P0[:-1, list(cons.feet), fm.skeleton.up_axis]
     mean_h = run_means(h_orig, cons.plant)

@@ -181,10 +181,11 @@ class FeatureMap(eqx.Module):
         ``decode(encode(m), *fm.start_of(m))`` reproduces ``m``.
         """
         up = unit_axis(self.skeleton.up_axis)
-        q0 = np.asarray(motion.rotations[0, 0], dtype=np.float64)
+        # index on the host: an eager index of a JAX array compiles once per clip length
+        q0 = np.asarray(motion.rotations, dtype=np.float64)[0, 0]
         heading = float(2.0 * np.arctan2(np.dot(q0[1:], up), q0[0]))
         heading = float((heading + np.pi) % (2 * np.pi) - np.pi)
-        return np.asarray(motion.root_positions[0], dtype=np.float64), heading
+        return np.asarray(motion.root_positions, dtype=np.float64)[0], heading
 
     def decode(
         self,
@@ -236,11 +237,23 @@ class FeatureMap(eqx.Module):
         *,
         end_sites: bool = False,
     ) -> Float[Array, "T J 3"]:
-        """World joint positions straight from ``Y`` (``decode`` then forward kinematics)."""
+        """World joint positions straight from ``Y`` (``decode`` then forward kinematics).
+
+        A concrete ``Y`` is decoded and posed in a shape bucket, as :meth:`decode` (design §11).
+        """
+        Y = as_array(Y)
+        try:
+            Yn = np.asarray(Y)
+        except jax.errors.TracerArrayConversionError:
+            Yn = None
+        T = int(Y.shape[0]) if Y.ndim == 2 else 0
+        if Yn is not None and T > 0:
+            Y = pad_frames(Yn, bucket_length(T, DECODE_FRAMES))
         m = self.decode(Y, start_position, start_heading)
-        return forward_kinematics_arrays(
+        P = forward_kinematics_arrays(
             m.skeleton, m.root_positions, m.rotations, m.local_positions, end_sites=end_sites
         )
+        return P if Yn is None or T == 0 else jax.device_put(np.asarray(P)[:T])
 
     def _check_motion(self, motion: Motion) -> None:
         if not isinstance(motion, Motion):
@@ -362,9 +375,11 @@ def _raw(m: Motion, tp: int | None = None) -> Array:
     t = m.n_frames
     if tp is None:
         tp = -(-t // _BUCKET) * _BUCKET
-    idx = np.minimum(np.arange(tp), t - 1)
-    lp = None if m.local_positions is None else m.local_positions[idx]
-    raw = _raw_jit(m.skeleton.up_axis, m.root_positions[idx], m.rotations[idx], lp)
+    # pad_frames repeats the last frame on the host for concrete arrays (an eager gather of a
+    # JAX array compiles once per clip length)
+    pad = lambda a: pad_frames(a, tp, axis=0)
+    lp = None if m.local_positions is None else pad(m.local_positions)
+    raw = _raw_jit(m.skeleton.up_axis, pad(m.root_positions), pad(m.rotations), lp)
     # cut on the host and put back with device_put: an eager slice of a JAX array, and
     # jnp.asarray of a NumPy array, compile once per clip length
     return jax.device_put(np.asarray(raw)[:t])
