@@ -31,6 +31,7 @@ from ._buckets import (
     as_array as as_array,
     bucket_length as bucket_length,
     count_compiles as count_compiles,
+    cut_frames as cut_frames,
     pad_frames as pad_frames,
 )
 from ._cache import (
@@ -107,6 +108,7 @@ __all__ = [
     "check_size",
     "check_writable",
     "count_compiles",
+    "cut_frames",
     "default_cache_dir",
     "describe_kind",
     "enable_compilation_cache",

@@ -26,6 +26,7 @@ __all__ = [
     "as_array",
     "bucket_length",
     "count_compiles",
+    "cut_frames",
     "pad_frames",
 ]
 
@@ -79,6 +80,20 @@ def pad_frames(Y: Any, n: int, axis: int = -2) -> Any:
     widths = [(0, 0)] * arr.ndim
     widths[axis] = (0, n - size)
     return jax.device_put(np.pad(arr, widths, mode="edge"))  # jnp.asarray would compile a copy
+
+
+def cut_frames(a: Any, n: int) -> Any:
+    """The first ``n`` entries of ``a`` along axis 0 (the inverse of :func:`pad_frames`).
+
+    A concrete array is cut on the host and transferred back with ``jax.device_put`` (an eager
+    slice of a JAX array compiles a program for every new length); a traced one is sliced in
+    the program.
+    """
+    try:
+        arr = np.asarray(a)
+    except jax.errors.TracerArrayConversionError:
+        return a[:n]
+    return jax.device_put(arr[:n])
 
 
 class CompileCount:

@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ..core import as_array
+from ..core import as_array, cut_frames
 from ..motion import FeatureMap
 from ._banded import PointTargets
 from ._constraints import Constraints, EditWeights
@@ -148,5 +148,4 @@ def solve_gn_bucketed(
         n_valid=as_array(np.int32(T)),
         **kw,
     )
-    cut = lambda a: as_array(np.asarray(a)[:T])  # on the host: no slicing program per length
-    return eqx.tree_at(lambda r: (r.Y, r.u), res, (cut(res.Y), cut(res.u)))
+    return eqx.tree_at(lambda r: (r.Y, r.u), res, (cut_frames(res.Y, T), cut_frames(res.u, T)))

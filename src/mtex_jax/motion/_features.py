@@ -35,7 +35,14 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float
 
-from ..core import as_array, bucket_length, load_arrays_json, pad_frames, save_arrays_json
+from ..core import (
+    as_array,
+    bucket_length,
+    cut_frames,
+    load_arrays_json,
+    pad_frames,
+    save_arrays_json,
+)
 from ._channels import decode_raw, raw_features, unit_axis
 from ._kinematics import forward_kinematics_arrays
 from ._motion import Motion, check_compatible
@@ -226,7 +233,7 @@ class FeatureMap(eqx.Module):
             pos, rot, lp = _decode(self, Y.astype(dtype), sp, sh)
             return Motion(self.skeleton, self.fps, pos, rot, lp)
         pos, rot, lp = _decode(self, pad_frames(Yn, bucket_length(T, DECODE_FRAMES)), sp, sh)
-        cut = lambda a: jax.device_put(np.asarray(a)[:T])
+        cut = lambda a: cut_frames(a, T)
         return Motion(self.skeleton, self.fps, cut(pos), cut(rot), None if lp is None else cut(lp))
 
     def joint_positions(
@@ -253,7 +260,7 @@ class FeatureMap(eqx.Module):
         P = forward_kinematics_arrays(
             m.skeleton, m.root_positions, m.rotations, m.local_positions, end_sites=end_sites
         )
-        return P if Yn is None or T == 0 else jax.device_put(np.asarray(P)[:T])
+        return P if Yn is None or T == 0 else cut_frames(P, T)
 
     def _check_motion(self, motion: Motion) -> None:
         if not isinstance(motion, Motion):
@@ -380,9 +387,7 @@ def _raw(m: Motion, tp: int | None = None) -> Array:
     pad = lambda a: pad_frames(a, tp, axis=0)
     lp = None if m.local_positions is None else pad(m.local_positions)
     raw = _raw_jit(m.skeleton.up_axis, pad(m.root_positions), pad(m.rotations), lp)
-    # cut on the host and put back with device_put: an eager slice of a JAX array, and
-    # jnp.asarray of a NumPy array, compile once per clip length
-    return jax.device_put(np.asarray(raw)[:t])
+    return cut_frames(raw, t)  # on the host: an eager slice compiles once per clip length
 
 
 @eqx.filter_jit

@@ -12,7 +12,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
-from ...core import as_array, bucket_length
+from ...core import as_array, bucket_length, cut_frames
 from .._texton.checks import check_obs
 from .._texton.texton import Texton
 from .forward import padded_log_likelihood
@@ -70,7 +70,7 @@ def log_likelihood_many(
             )
     batch, nf, S = _stacked(arrays, lengths, Tb)
     out = _padded_log_likelihoods(textons, log_M, log_pi, batch, nf, tmin, tmax, dur)
-    return jax.device_put(np.asarray(out)[:S])
+    return cut_frames(out, S)
 
 
 @eqx.filter_jit

@@ -37,7 +37,7 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ...core import as_array, bucket_length, pad_frames
+from ...core import as_array, bucket_length, cut_frames, pad_frames
 from .._scoring.frame_terms import frame_coefs
 from .._scoring.packing import packed_scores_impl
 from .._scoring.scores import SegmentScorer, batch_scores_impl, segment_scores
@@ -328,9 +328,9 @@ def segment(
         seg = _padded_segment(textons, log_M, log_pi, Yp, n_valid, tmin, tmax, log_d, traced)
         K = T // tmin + 1  # the slots of the unpadded sequence
         return Segmentation(
-            starts=_head(seg.starts, K),
-            lengths=_head(seg.lengths, K),
-            labels=_head(seg.labels, K),
+            starts=cut_frames(seg.starts, K),
+            lengths=cut_frames(seg.lengths, K),
+            labels=cut_frames(seg.labels, K),
             n_segments=seg.n_segments,
             score=seg.score,
         )
@@ -362,15 +362,6 @@ def _padded_segment(
     # check inside for a Y checked eagerly: a host callback keeps a program out of the cache)
     scorer = segment_scores(textons, Y, check=check)
     return viterbi_segments(scorer, log_M, log_pi, n_valid, tmin, tmax, log_durations)
-
-
-def _head(a: Array, k: int) -> Array:
-    """The first ``k`` entries of ``a`` (sliced on the host when concrete: no XLA program
-    per length)."""
-    try:
-        return jax.device_put(np.asarray(a)[:k])
-    except jax.errors.TracerArrayConversionError:
-        return a[:k]
 
 
 def _check_durations(
