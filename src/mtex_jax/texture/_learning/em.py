@@ -315,6 +315,7 @@ class Runner:
             self.packing,
             self._old_rows(np.zeros((0, 4), np.int64) if old is None else old),
             jax.device_put(np.int32(n)),  # the padding slots' frame terms are skipped
+            check=False,  # the clips were checked when learning began: a cacheable program
         )
         seg, old_j = seg
         old_scores = None if old is None else np.asarray(old_j)[: len(self.ys)]

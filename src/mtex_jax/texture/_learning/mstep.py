@@ -92,7 +92,9 @@ def _fit_all_impl(
         acc, _ = jax.lax.scan(body, acc0, (labels, groups))
         return acc
 
-    fs = summed(lambda i, g: frame_stats_impl(*slab(g)))
+    # check=False: the clips were checked when learning began, and an in-program NaN check
+    # (a host callback) would keep the M-step out of the persistent compilation cache
+    fs = summed(lambda i, g: frame_stats_impl(*slab(g), check=False))
     # The eigen-decompositions and Cholesky factorisations run one texton at a time
     # (lax.map): batched LAPACK calls in jaxlib's CPU runtime split their batch over the
     # intra-op thread pool and two of them running concurrently can deadlock a 2-core pool.
@@ -101,7 +103,7 @@ def _fit_all_impl(
     def pass2(i: Array, g: Array) -> Any:
         frames, ids = slab(g)
         # one segment starts per slab
-        return dynamics_stats_impl(frames, ids, jax.tree.map(lambda a: a[i], sub), G)
+        return dynamics_stats_impl(frames, ids, jax.tree.map(lambda a: a[i], sub), G, check=False)
 
     def gaussian() -> Texton:
         ds = summed(pass2)
@@ -127,7 +129,8 @@ def _fit_all_impl(
         def pass2w(i: Array, g: Array) -> Any:
             frames, ids = slab(g)
             w = student_frame_weights(tex[i], frames, dof)
-            return dynamics_stats_impl(frames, ids, jax.tree.map(lambda a: a[i], sub), G, weights=w)
+            sub_i = jax.tree.map(lambda a: a[i], sub)
+            return dynamics_stats_impl(frames, ids, sub_i, G, weights=w, check=False)
 
         ds = summed(pass2w)
         return solve_stack(sub, ds, opts)

@@ -100,6 +100,7 @@ def packed_scores_impl(
     n: Array,
     coefs: tuple[Array, dict[str, Array], dict[str, Array] | None] | None = None,
     n_active: Array | None = None,
+    check: bool = True,
 ) -> SegmentScorer:
     """The :class:`SegmentScorer` of each clip of one packed batch (leading axis ``c``), equal
     to the per-clip :func:`segment_scores` to rounding on every segment of the clip.
@@ -110,13 +111,14 @@ def packed_scores_impl(
     (``init``: ``−inf``). ``coefs``: the textons' :func:`frame_coefs` (``with_init=True``),
     computed once for all batches (default: from this batch's frames). ``n_active``: only
     the first ``n_active`` textons' scores are needed (the others' are not computed for
-    full-dimensional textons: see :func:`frame_terms_impl`).
+    full-dimensional textons: see :func:`frame_terms_impl`). ``check=False``: no in-program
+    NaN/inf check of ``Yflat`` (see :func:`~.scores.batch_scores_impl`).
     """
     Yb = Yflat[frames]  # (P, D): the batch's real frames end to end
     P = Yb.shape[0]
     block = block_frames(None, textons, Yb)
     dyn, obs, init = frame_terms_impl(
-        textons, Yb, min(block, P), with_init=True, coefs=coefs, n_active=n_active
+        textons, Yb, min(block, P), with_init=True, coefs=coefs, n_active=n_active, check=check
     )
     T = where.shape[-1]
     t = jnp.arange(T)

@@ -162,7 +162,7 @@ def scorer_from_terms(dyn: Array, obs: Array, init: Array) -> SegmentScorer:
     )
 
 
-def batch_scores_impl(textons: Texton, Y: Array) -> SegmentScorer:
+def batch_scores_impl(textons: Texton, Y: Array, check: bool = True) -> SegmentScorer:
     """The :class:`SegmentScorer` of every sequence of ``Y (S, T, D)`` (arrays with a leading
     ``S`` axis), equal to ``vmap(segment_scores)`` to rounding.
 
@@ -171,12 +171,14 @@ def batch_scores_impl(textons: Texton, Y: Array) -> SegmentScorer:
     falls out of cache: about twice slower on the 14 salsa clips). Terms that would reach
     across two sequences (``dyn`` at frames 0 and 1, ``init`` at frame ``T − 1``) are never
     part of a segment score; they are set to the values the per-sequence kernel gives them
-    (0 and ``−inf``) before the prefix sums, which are taken per sequence.
+    (0 and ``−inf``) before the prefix sums, which are taken per sequence. ``check=False``
+    leaves out the in-program NaN/inf check of ``Y`` (a host callback, which keeps the program
+    out of the persistent compilation cache) for callers that checked it eagerly.
     """
     S, T, D = Y.shape
     flat = Y.reshape(S * T, D)
     block = block_frames(None, textons, flat)
-    dyn, obs, init = frame_terms_impl(textons, flat, min(block, S * T), with_init=True)
+    dyn, obs, init = frame_terms_impl(textons, flat, min(block, S * T), with_init=True, check=check)
 
     def per_seq(a: Array) -> Array:  # (N, S·T) -> (S, N, T)
         return jnp.moveaxis(a.reshape(a.shape[0], S, T), 1, 0)

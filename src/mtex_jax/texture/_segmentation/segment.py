@@ -398,6 +398,7 @@ def segment_batch(
     packing=None,
     old=None,
     n_active=None,
+    check: bool = True,
 ) -> tuple[Segmentation, Array]:
     """Segmentations of the clips ``Y (S, T, D)`` of ``nf (S,)`` frames, and ``(S,)`` sums of
     the scores of the segments ``old`` from the same segment scores (0 without ``old``).
@@ -414,7 +415,11 @@ def segment_batch(
 
     ``n_active`` (with ``packing``; a traced count): the textons past the first ``n_active``
     are padding that the transitions never enter (``log π``, ``log M`` columns ``−inf``);
-    their frame terms are skipped where the kernel allows (full-dimensional textons)."""
+    their frame terms are skipped where the kernel allows (full-dimensional textons).
+
+    ``check=False`` (static): no in-program NaN/inf check of ``Y`` (a host callback keeps a
+    program out of the persistent compilation cache), for callers that checked ``Y``
+    eagerly, as :func:`~mtex_jax.texture.learn` does with its clips."""
     if not textons.is_stacked:
         textons = jax.tree.map(lambda a: a[None], textons)
 
@@ -426,7 +431,7 @@ def segment_batch(
         return jnp.sum(jnp.where(ln > 0, s, 0.0))
 
     if packing is None:
-        sc = batch_scores_impl(textons, Y)
+        sc = batch_scores_impl(textons, Y, check)
         seg = jax.vmap(one)(sc, nf)
         if old is None:
             return seg, jnp.zeros(nf.shape, Y.dtype)
@@ -440,7 +445,7 @@ def segment_batch(
     def batch(args: tuple[Array, ...]) -> tuple[Segmentation, Array]:
         frames, where, n, clip = args
         n = n.astype(nf.dtype)
-        sc = packed_scores_impl(textons, Yflat, frames, where, n, coefs, n_active)
+        sc = packed_scores_impl(textons, Yflat, frames, where, n, coefs, n_active, check)
         seg = jax.vmap(one)(sc, n)
         if old is None:
             return seg, jnp.zeros(clip.shape, Y.dtype)

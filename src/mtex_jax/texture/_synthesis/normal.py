@@ -223,15 +223,19 @@ def solve_constrained(tex: Texton, eqs: _Equations, w: Array | None = None) -> t
     return x, ok
 
 
-def observe(tex: Texton, x: Array, ok: Array) -> Array:
+def observe(tex: Texton, x: Array, ok: Array, check: bool = True) -> Array:
     """``μ + C x_t`` as one GEMM ``[x, 1] [Cᵀ; μ]``; a failed solve or non-finite states
-    (e.g. a texton with NaN in ``d``) raise (``eqx.error_if``)."""
+    (e.g. a texton with NaN in ``d``) raise (``eqx.error_if``), or with ``check=False`` give
+    NaN frames (no host callback in the program, so the persistent compilation cache keeps
+    it; the caller checks the result on the host)."""
     proj = jnp.concatenate([tex.C.T, tex.mu[None, :]], axis=0)  # (k+1, D)
-    proj = eqx.error_if(
-        proj,
-        ~(ok & jnp.all(jnp.isfinite(x))),
-        "synthesize_texton: normal matrix not positive definite or non-finite states"
-        " (non-finite or singular texton parameters?)",
-    )
+    if check:
+        proj = eqx.error_if(
+            proj,
+            ~(ok & jnp.all(jnp.isfinite(x))),
+            "synthesize_texton: normal matrix not positive definite or non-finite states"
+            " (non-finite or singular texton parameters?)",
+        )
     x1 = jnp.concatenate([x, jnp.ones((x.shape[0], 1), x.dtype)], axis=1)
-    return x1 @ proj
+    y = x1 @ proj
+    return y if check else jnp.where(ok, y, jnp.nan)

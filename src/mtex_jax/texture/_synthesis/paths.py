@@ -30,7 +30,14 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
-from ...core import MAX_GENERATED_FRAMES, bucket_length, check_count, check_key, check_size
+from ...core import (
+    MAX_GENERATED_FRAMES,
+    as_array,
+    bucket_length,
+    check_count,
+    check_key,
+    check_size,
+)
 from .._model import MotionTexture
 
 __all__ = ["path_cost", "path_of_length", "random_path", "shortest_path"]
@@ -231,20 +238,26 @@ def shortest_path(
 # --------------------------------------------------------------------------------------------
 
 
-def _length_dp(log_M: Float[Array, "n n"], u: Array, L: int) -> tuple[Array, Array]:
-    """Max-product DP: ``V (n,)`` after ``L − 1`` steps and back-pointers ``(L − 1, n)``."""
+def _length_dp(
+    log_M: Float[Array, "n n"], u: Array, n_steps: Array, size: int
+) -> tuple[Array, Array]:
+    """Max-product DP: ``V (n,)`` after ``n_steps`` steps and back-pointers ``(size, n)``.
+
+    The scan runs ``size ≥ n_steps`` steps (a shape bucket, design §11) and ``V`` stops
+    changing after ``n_steps``; back-pointers past it are unused."""
     n = log_M.shape[0]
     V0 = jnp.where(jnp.arange(n) == u, 0.0, -jnp.inf).astype(log_M.dtype)
 
-    def step(V: Array, _: None) -> tuple[Array, Array]:
+    def step(V: Array, i: Array) -> tuple[Array, Array]:
         cand = V[:, None] + log_M  # cand[i, j] = V(i) + log M_ij
-        return jnp.max(cand, axis=0), jnp.argmax(cand, axis=0)
+        return jnp.where(i < n_steps, jnp.max(cand, axis=0), V), jnp.argmax(cand, axis=0)
 
-    V, back = lax.scan(step, V0, None, length=L - 1)
+    V, back = lax.scan(step, V0, jnp.arange(size))
     return V, back
 
 
-_length_dp_jit = jax.jit(_length_dp, static_argnums=2)
+_length_dp_jit = jax.jit(_length_dp, static_argnums=3)
+_PATH_STEPS = 64  # path lengths are padded to a multiple of this
 
 
 def path_of_length(texture: MotionTexture, u: int, v: int, L: int) -> tuple[np.ndarray, float]:
@@ -283,11 +296,12 @@ def path_of_length(texture: MotionTexture, u: int, v: int, L: int) -> tuple[np.n
         return np.asarray([u], dtype=np.int64), 0.0
     with np.errstate(divide="ignore"):
         log_M = jnp.asarray(np.log(M))
-    V, back = _length_dp_jit(log_M, jnp.asarray(u), int(L))
-    score = float(V[v])
+    size = bucket_length(L - 1, _PATH_STEPS)
+    V, back = _length_dp_jit(log_M, jnp.asarray(u), as_array(np.int32(L - 1)), size)
+    score = float(np.asarray(V)[v])
     if not np.isfinite(score):
         raise ValueError(f"no path of exactly {L} textons from {u} to {v}")
-    back_np = np.asarray(back)
+    back_np = np.asarray(back)[: L - 1]
     path = [v]
     for m in range(L - 2, -1, -1):  # host back-tracking over L labels (not frames)
         path.append(int(back_np[m, path[-1]]))

@@ -180,7 +180,9 @@ def path_core(
         # free state follows the end constraint: a free tail would make the normal equations
         # of an unstable texton as ill-conditioned as ρ^(2·tail)
         poses = jnp.where((t == at)[:, None], e[0], e[1])
-        y = constrained_texton(tex, vi, s, None, (t >= at, poses), weighting)
+        # check=False: a failed solve gives NaN, which synthesize_path reports from the host
+        # (an in-program check is a host callback: the program could not be cached)
+        y = constrained_texton(tex, vi, s, None, (t >= at, poses), weighting, check=False)
         if not blend:
             return y
         # residual outside the subspace, r = y − μ − C Cᵀ(y − μ), at the held frames, blended
@@ -277,7 +279,14 @@ def synthesize_path(
     )
     rows = np.repeat(np.arange(n), lengths)
     cols = np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
-    return jax.device_put(np.asarray(out)[rows, cols])  # on the host: no program per length
+    Y = np.asarray(out)[rows, cols]  # on the host: no program per length
+    if not np.isfinite(Y).all():
+        bad = sorted({int(path[r]) for r in rows[~np.isfinite(Y).all(axis=1)]})
+        raise ValueError(
+            f"synthesize: the constrained solve of texton(s) {bad} failed (normal matrix not "
+            "positive definite or non-finite states: non-finite or singular texton parameters?)"
+        )
+    return jax.device_put(Y)
 
 
 @eqx.filter_jit

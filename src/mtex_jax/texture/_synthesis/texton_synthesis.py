@@ -235,8 +235,12 @@ def constrained_texton(
     end: Array | None,
     fixed: tuple[Array, Array] | None,
     weighting: str,
+    check: bool = True,
 ) -> Array:
     """Constrained synthesis by perturb-and-MAP with the equation noise ``v`` ``(l−2, k)``.
+
+    ``check=False``: a failed solve gives NaN frames instead of raising in the program
+    (:func:`~.normal.observe`), for a caller that checks the result on the host.
 
     Both ends held and no edits (``l ≥ 6``): :func:`solve_bridge`, unless the texton amplifies
     over the segment so much (:func:`bridge_usable`) that the recursion would lose
@@ -252,7 +256,7 @@ def constrained_texton(
     w = v.astype(dt) @ tex.B.T  # the noise in state units, w_j = B v_j (the one reader of v)
     if end is None or fixed is not None or length < 6:
         eqs = constrained_equations(tex, length, w, start, end, fixed, weighting)
-        return observe(tex, *solve_constrained(tex, eqs, w))
+        return observe(tex, *solve_constrained(tex, eqs, w), check=check)
     proj = lambda y: (y.astype(dt) - tex.mu) @ tex.C
     x01, xe = proj(start), proj(end)
     # the bridge where the texton does not amplify too much over the segment (decided from
@@ -272,7 +276,7 @@ def constrained_texton(
         return solve_constrained(tex, eqs, w)
 
     x, ok = lax.cond(usable, lambda _: (x, ok), banded, None)
-    return observe(tex, x, ok)
+    return observe(tex, x, ok, check=check)
 
 
 def _constrained_key(

@@ -147,8 +147,9 @@ def check_fit_inputs(Y: Any, mask: Any) -> tuple[Array, Array]:
     return Y, mask
 
 
-def frame_stats_impl(Y: Array, mask: Array) -> FrameStats:
-    Y = error_if_nonfinite(Y, "Y")
+def frame_stats_impl(Y: Array, mask: Array, check: bool = True) -> FrameStats:
+    if check:  # an in-program check is a host callback: uncacheable (see fit_all)
+        Y = error_if_nonfinite(Y, "Y")
     D = Y.shape[-1]
     Yf = Y.reshape(-1, D)
     w = (mask.reshape(-1) >= 0).astype(Y.dtype)
@@ -323,8 +324,10 @@ def dynamics_stats_impl(
     subspace: Subspace,
     max_starts: int | None = None,
     weights: Array | None = None,
+    check: bool = True,
 ) -> DynamicsStats:
-    Y = error_if_nonfinite(Y, "Y")
+    if check:
+        Y = error_if_nonfinite(Y, "Y")
     mu = subspace.mu.astype(Y.dtype)
     C = subspace.C.astype(Y.dtype)
     if Y.ndim == 2:
