@@ -136,6 +136,18 @@ def test_synthesis_padding_changes_nothing(tex, monkeypatch):
     np.testing.assert_allclose(runs[0][1], runs[1][1], rtol=0, atol=1e-10)
 
 
+def test_choreograph_compiles_per_bucket():
+    """``path_of_length``'s dynamic programme runs in 64-step buckets; the synthesis along the
+    planned path is :func:`synthesize`'s (on a default texture, as
+    :func:`test_synthesize_compiles_per_bucket`)."""
+    tex = edit_setup.default_texture()
+    key = jax.random.key(2)
+    Y = np.asarray(mj.synthesize(key, tex, n_frames=500).Y)
+    a, b = Y[100:102], Y[400:402]
+    f = lambda n: T.choreograph(key, tex, a, b, n_frames=n).Y.block_until_ready()
+    assert _programs(f, lengths=[300, 450, 811, 1203, 1999], warm=700) <= 3
+
+
 def test_decode_in_a_bucket_equals_unpadded(tex, Y):
     fm = tex.feature_map
     m = fm.decode(Y[:777])
