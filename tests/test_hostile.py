@@ -51,6 +51,7 @@ from hostile_cases import (
 from mtex_jax.cli import main
 from mtex_jax.edit import load_contacts, save_contacts
 from mtex_jax.metrics import density_report, fit_contacts
+from shared_textures import dance_pair_texture
 
 DATA = Path(mj.__file__).resolve().parent / "data" / "deepmimic"
 
@@ -64,8 +65,7 @@ def world(tmp_path_factory) -> dict[str, Any]:
     contact model, a feature map, a BVH clip and a DeepMimic clip, in one folder."""
     d = tmp_path_factory.mktemp("world")
     clips = [mj.load_example("dance_a"), mj.load_example("dance_b")]
-    cfg = mj.LearnConfig.paper(tmin=10, tmax=30, state_dim=4, fps=30.0, max_iter=2)
-    tex = mj.learn(clips, cfg)
+    tex = dance_pair_texture()  # learned from these clips, shared with other test modules
     tex.save(d / "tex.npz")
     save_contacts(d / "contacts.npz", fit_contacts(clips, fps=60.0))
     assert tex.feature_map is not None

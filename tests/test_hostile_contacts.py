@@ -19,6 +19,7 @@ import pytest
 import mtex_jax as mj
 from hostile_cases import Case, params, rewrite_npz
 from mtex_jax.edit import load_contacts, save_contacts
+from shared_textures import dance_pair_texture
 
 
 def _meta(keys: tuple[str, ...], value: Any):
@@ -202,9 +203,7 @@ def files(tmp_path_factory) -> dict[str, Any]:
     """A small texture learned from two DeepMimic clips at 30 Hz (so it carries their contact
     model) in a model file, and that contact model in a file of its own."""
     d = tmp_path_factory.mktemp("contacts")
-    clips = [mj.load_example("dance_a"), mj.load_example("dance_b")]
-    cfg = mj.LearnConfig.paper(tmin=10, tmax=30, state_dim=4, fps=30.0, max_iter=2)
-    tex = mj.learn(clips, cfg)
+    tex = dance_pair_texture()  # shared with other test modules (learned once per process)
     assert tex.contacts is not None and tex.contacts.feet == (9, 12)
     tex.save(d / "tex.npz")
     save_contacts(d / "contacts.npz", tex.contacts)

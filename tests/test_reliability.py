@@ -20,7 +20,8 @@ import pytest
 import mtex_jax as mj
 from mtex_jax.cli import main
 from mtex_jax.texture import Texton
-from paper_settings import PAPER, UNTIED
+from paper_settings import UNTIED
+from shared_textures import dance_pair_texture
 
 DATA = Path(mj.__file__).resolve().parent / "data" / "deepmimic"
 
@@ -31,9 +32,7 @@ DATA = Path(mj.__file__).resolve().parent / "data" / "deepmimic"
 @pytest.fixture(scope="module")
 def small_texture(tmp_path_factory):
     """A small texture learned from two embedded clips, and its model file."""
-    clips = [mj.load_example("dance_a"), mj.load_example("dance_b")]
-    cfg = mj.LearnConfig(tmin=10, tmax=30, state_dim=4, fps=30.0, max_iter=2, **PAPER)
-    tex = mj.learn(clips, cfg)
+    tex = dance_pair_texture()  # shared with other test modules (learned once per process)
     path = tmp_path_factory.mktemp("model") / "texture.npz"
     tex.save(path)
     return tex, path

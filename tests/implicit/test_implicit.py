@@ -20,26 +20,21 @@ WINDOW = 10
 HELD_OUT = 2  # 60_03: probes come from a clip the database has not seen
 
 
-CHUNK = 128  # training clips are cut into equal chunks: one jit compilation of the features
-
-
-def chunks(motions, size=CHUNK):
-    return [m[i : i + size] for m in motions for i in range(0, m.n_frames - size + 1, size)]
+# salsa30, salsa30_chunks and salsa30_model: tests/implicit/conftest.py (shared with
+# test_tracking, built once per process)
+@pytest.fixture(scope="module")
+def train(salsa30_chunks, salsa30_held_out):
+    """128-frame chunks of every clip but ``HELD_OUT`` (one jit compilation of the features)."""
+    assert salsa30_held_out == HELD_OUT
+    return salsa30_chunks
 
 
 @pytest.fixture(scope="module")
-def salsa30(cmu_motions):
-    return [m.resample(30.0) for m in cmu_motions]
-
-
-@pytest.fixture(scope="module")
-def train(salsa30):
-    return chunks([m for i, m in enumerate(salsa30) if i != HELD_OUT])
-
-
-@pytest.fixture(scope="module")
-def model(train) -> ImplicitModel:
-    return mj.implicit.learn(train, WINDOW)
+def model(salsa30_model, train) -> ImplicitModel:
+    """The default model of ``train`` with ``WINDOW``-frame windows."""
+    assert salsa30_model.window == WINDOW
+    assert salsa30_model.n_examples == sum(m.n_frames - 1 - WINDOW for m in train)
+    return salsa30_model
 
 
 @pytest.fixture(scope="module")

@@ -22,18 +22,15 @@ from mtex_jax.motion import forward_kinematics_arrays
 
 WINDOW = 10
 HELD_OUT = 2  # 60_03 is tracked; the database holds the other 13 clips
-CHUNK = 128  # equal-length training chunks: one jit compilation of the features
 
 
+# salsa30, salsa30_chunks and salsa30_model: tests/implicit/conftest.py (shared with
+# test_implicit, built once per process)
 @pytest.fixture(scope="module")
-def salsa30(cmu_motions):
-    return [m.resample(30.0) for m in cmu_motions]
-
-
-@pytest.fixture(scope="module")
-def chunks(salsa30):
-    train = [m for i, m in enumerate(salsa30) if i != HELD_OUT]
-    return [m[i : i + CHUNK] for m in train for i in range(0, m.n_frames - CHUNK + 1, CHUNK)]
+def chunks(salsa30_chunks, salsa30_held_out):
+    """128-frame chunks of every clip but ``HELD_OUT`` (one jit compilation of the features)."""
+    assert salsa30_held_out == HELD_OUT
+    return salsa30_chunks
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +93,7 @@ def test_systematic_resampling_counts():
         assert counts[4] == 0
 
 
-def test_implicit_prior_beats_constant_velocity_with_300_particles(model, problem, chunks):
+def test_implicit_prior_beats_constant_velocity_with_300_particles(model, problem, salsa30_model):
     """The small version of the benchmark: same observations, 300 particles each, two seeds;
     the default database (recent weight 32, chosen for synthesis) beats constant velocity too,
     by less."""
@@ -116,8 +113,8 @@ def test_implicit_prior_beats_constant_velocity_with_300_particles(model, proble
     )
     assert e_imp < 0.75 * e_cv
     assert np.mean(rel["implicit"]) < np.mean(rel["constant_velocity"])
-    default = mj.implicit.learn(chunks, WINDOW)
-    assert default.recent_weight > 0
+    default = salsa30_model  # mj.implicit.learn(chunks, WINDOW): learned once (conftest.py)
+    assert default.window == WINDOW and default.recent_weight > 0
     e_def = np.mean(
         [track(jax.random.PRNGKey(s), default, problem, n_particles=300).mean_error for s in (0, 1)]
     )

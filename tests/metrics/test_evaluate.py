@@ -9,16 +9,15 @@ import pytest
 import mtex_jax as mj
 from mtex_jax.cli import main
 from paper_settings import PAPER
+from shared_textures import salsa30_texture
 
 
 @pytest.fixture(scope="module")
-def cmu_model(tmp_path_factory, cmu_files):
-    clips = [mj.read_bvh(f).resample(30.0) for f in cmu_files[:3]]
-    cfg = mj.LearnConfig(
-        tmin=30, tmax=90, state_dim=6, fps=30.0, threshold=0.3, max_iter=2, **PAPER
-    )
+def cmu_model(tmp_path_factory, cmu_dir):
+    """A paper model learned from the first three CMU clips at 30 Hz (shared with other test
+    modules: learned once per process), in a model file."""
     path = tmp_path_factory.mktemp("eval") / "salsa.npz"
-    mj.learn(clips, cfg).save(path)
+    salsa30_texture(cmu_dir).save(path)
     return path
 
 

@@ -16,7 +16,7 @@ from mtex_jax.metrics import (
     prediction_error,
     texture_predict,
 )
-from paper_settings import PAPER
+from shared_textures import salsa30_texture
 
 
 def _ar2_data(rng, T, D, n_seq=3):
@@ -137,14 +137,9 @@ def test_bad_input():
         fit_ar2([np.zeros((5, 2))], ridge=-1.0)
 
 
-def test_texture_prediction_equals_numpy(cmu_motions):
-    import mtex_jax as mj
-
-    train = [m.resample(30.0) for m in cmu_motions[:2]]
-    cfg = mj.LearnConfig(
-        tmin=30, tmax=90, state_dim=6, fps=30.0, threshold=0.3, max_iter=1, **PAPER
-    )
-    tex = mj.learn(train, cfg)
+def test_texture_prediction_equals_numpy(cmu_dir, cmu_motions):
+    # a paper texture learned from the first three clips at 30 Hz (shared with test_evaluate)
+    tex = salsa30_texture(cmu_dir)
     clip = cmu_motions[12].resample(30.0)[:200]
     pred, labels = texture_predict(tex, clip)
     Y = np.asarray(tex.feature_map.encode(clip))

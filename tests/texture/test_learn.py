@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import equinox as eqx
 import jax
@@ -92,20 +93,28 @@ def test_recovers_a_known_motion_texture(seed):
     assert np.all(segs[:, 2] >= 40) and np.all(segs[:, 2] <= 120)
 
 
+@functools.cache
+def _convergence_run(relabel_tol: float) -> tuple[int, LearnConfig, tuple[dict, ...]]:
+    """Frames, config and the callback's figures of one learn with a coarse greedy threshold;
+    cached, so that the run without a share (``relabel_tol=0``) is learned once for both cases
+    of the test below."""
+    rng = np.random.default_rng(3)
+    Y, _, _ = sample_texture(rng, make_textons(rng))
+    cfg = LearnConfig(
+        tmin=40, tmax=120, state_dim=4, threshold=3.0, relabel_tol=relabel_tol, **PAPER
+    )
+    infos: list[dict] = []
+    learn([Y], cfg, callback=infos.append)
+    return len(Y), cfg, tuple(infos)
+
+
 @pytest.mark.parametrize("relabel_tol", [0.0, 0.05])
 def test_em_stops_at_its_convergence_test(relabel_tol):
     """EM stops at its first iteration where at most ``relabel_tol`` of the frames changed
     texton or the objective gained less than ``tol`` per frame (or at ``max_iter``), as the
     callback's figures show. With a coarse greedy threshold EM relabels 1014, 363, 50 and 0 of
     the 3,605 frames: a share of 0.05 stops it at the third iteration, on the same iterates."""
-    rng = np.random.default_rng(3)
-    Y, _, _ = sample_texture(rng, make_textons(rng))
-    n = len(Y)
-    cfg = LearnConfig(
-        tmin=40, tmax=120, state_dim=4, threshold=3.0, relabel_tol=relabel_tol, **PAPER
-    )
-    infos: list[dict] = []
-    learn([Y], cfg, callback=infos.append)
+    n, cfg, infos = _convergence_run(relabel_tol)
     assert [i["iteration"] for i in infos] == list(range(len(infos)))  # one EM run
     assert all(i["pruned"] == 0 for i in infos)
     gains = np.diff([-np.inf] + [i["objective_e"] for i in infos])
@@ -116,8 +125,8 @@ def test_em_stops_at_its_convergence_test(relabel_tol):
     assert not any(stop[:-1])
     assert stop[-1] or infos[-1]["iteration"] == cfg.max_iter
     if relabel_tol > 0:  # the same iterates as without the share, stopped no later
-        strict: list[dict] = []
-        learn([Y], dataclasses.replace(cfg, relabel_tol=0.0), callback=strict.append)
+        _, strict_cfg, strict = _convergence_run(0.0)  # the case above: learned once
+        assert strict_cfg == dataclasses.replace(cfg, relabel_tol=0.0)
         assert len(strict) > len(infos)  # this share stops this run earlier
         want = [i["objective_e"] for i in strict[: len(infos)]]
         assert [i["objective_e"] for i in infos] == want
@@ -325,14 +334,30 @@ def test_learn_float32_smoke():
     assert np.all(np.isfinite(np.asarray(mt.history)))
 
 
-def test_min_segments_prunes_rarely_used_textons():
+def _pruning_parts() -> list[np.ndarray]:
+    """Two clips on which the greedy threshold 0.05 makes many textons of one or two
+    segments."""
     rng = np.random.default_rng(3)
     Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=30)
-    parts = [Y[: len(Y) // 2], Y[len(Y) // 2 :]]
-    base = dict(tmin=40, tmax=120, state_dim=4, threshold=0.05, max_iter=6)
-    paper = {**PAPER, "min_segments": 1}
-    loose = learn(parts, LearnConfig(**base, **paper))
-    tight = learn(parts, LearnConfig(**base, **{**paper, "min_segments": 3}))
+    return [Y[: len(Y) // 2], Y[len(Y) // 2 :]]
+
+
+def _pruning_config(min_segments: int) -> LearnConfig:
+    paper = {**PAPER, "min_segments": min_segments}
+    return LearnConfig(tmin=40, tmax=120, state_dim=4, threshold=0.05, max_iter=6, **paper)
+
+
+@functools.cache
+def _pruned_texture(min_segments: int) -> MotionTexture:
+    """``learn`` on :func:`_pruning_parts` (the default path), learned once for the two tests
+    below that need it."""
+    return learn(_pruning_parts(), _pruning_config(min_segments))
+
+
+def test_min_segments_prunes_rarely_used_textons():
+    parts = _pruning_parts()
+    loose = _pruned_texture(1)
+    tight = _pruned_texture(3)
     c_loose = np.bincount(np.asarray(loose.key_pose_labels))
     c_tight = np.bincount(np.asarray(tight.key_pose_labels), minlength=tight.n_textons)
     assert c_loose.min() < 3  # this setting does leave rarely used textons without pruning
@@ -348,9 +373,10 @@ def test_min_segments_prunes_rarely_used_textons():
             LearnConfig(min_segments=bad)
 
 
-def _learn_both_ways(monkeypatch, data, cfg):
+def _learn_both_ways(monkeypatch, data, cfg, new=None):
     """``learn`` with the greedy textons of too few segments dropped before the first E-step
-    (the default), and with them pruned only after it, as the E-step decides."""
+    (the default; ``new`` if given, a model learned so), and with them pruned only after it,
+    as the E-step decides."""
     from mtex_jax.texture._learning import learn as _learn
 
     seen = []
@@ -360,7 +386,8 @@ def _learn_both_ways(monkeypatch, data, cfg):
         seen.append(prune_initial)
         return em(*args, prune_initial=False, **kwargs)
 
-    new = learn(data, cfg)
+    if new is None:
+        new = learn(data, cfg)
     monkeypatch.setattr(_learn, "run_em", old_path)
     old = learn(data, cfg)
     assert any(seen)  # the greedy EM did ask for the early pruning
@@ -381,16 +408,14 @@ def _assert_same_texture(a, b):
 
 def test_pruning_the_greedy_textons_before_the_first_e_step_changes_nothing(monkeypatch):
     # threshold 0.05 makes many greedy textons of one or two segments (see the test above)
-    rng = np.random.default_rng(3)
-    Y, _, _ = sample_texture(rng, make_textons(rng), n_seg=30)
-    parts = [Y[: len(Y) // 2], Y[len(Y) // 2 :]]
-    paper = {**PAPER, "min_segments": 3}
-    cfg = LearnConfig(tmin=40, tmax=120, state_dim=4, threshold=0.05, max_iter=6, **paper)
+    parts = _pruning_parts()
+    cfg = _pruning_config(3)
     from mtex_jax.texture._learning.init import greedy_init
 
     segs, n = greedy_init(parts, cfg, 0.05)
     assert np.sum(np.bincount(segs[:, 3], minlength=n) < cfg.min_segments) >= 3
-    new, old = _learn_both_ways(monkeypatch, parts, cfg)
+    # the default path's model is the one the test above learned (the same clips and config)
+    new, old = _learn_both_ways(monkeypatch, parts, cfg, new=_pruned_texture(3))
     _assert_same_texture(new, old)
 
 

@@ -219,13 +219,21 @@ def test_fit_durations_rows_are_distributions_and_follow_the_data():
 
 def _brute_best(textons, log_M, log_pi, Y, tmin, tmax, log_dur):
     T, n_t = Y.shape[0], log_pi.shape[0]
+    one = [textons[i] for i in range(n_t)]
+    seg_ll: dict[tuple[int, int, int], float] = {}  # each segment's likelihood computed once
+
+    def ll(b: int, L: int, i: int) -> float:
+        if (b, L, i) not in seg_ll:
+            seg_ll[b, L, i] = float(segment_log_likelihood(one[i], Y[b : b + L]))
+        return seg_ll[b, L, i]
+
     best, arg = -np.inf, None
     for comp in compositions(T, tmin, tmax):
         starts = np.concatenate([[0], np.cumsum(comp)[:-1]]).astype(int)
         for labels in itertools.product(range(n_t), repeat=len(comp)):
             s = log_pi[labels[0]] + sum(log_M[a, b] for a, b in itertools.pairwise(labels))
             for b, L, i in zip(starts, comp, labels, strict=True):
-                s += float(segment_log_likelihood(textons[i], Y[b : b + L]))
+                s += ll(int(b), int(L), int(i))
                 s += log_dur[i, L - tmin]
             if s > best:
                 best, arg = s, list(zip(starts.tolist(), comp, labels, strict=True))
@@ -263,11 +271,14 @@ def _numpy_duration_dp(scorer, log_M, log_pi, T, tmin, tmax, log_dur):
     table = np.asarray(scorer.score(b[None], e[None], np.arange(n_t)[:, None, None]))
     V = np.full((T, n_t), -np.inf)  # best score of frames 0 … e with a segment of i ending at e
     for end in range(T):
-        for L in range(tmin, min(tmax, end + 1) + 1):
-            start = end - L + 1
-            enter = log_pi if start == 0 else np.max(V[start - 1][:, None] + log_M, axis=0)
-            cand = enter + table[:, start, end] + log_dur[:, L - tmin]
-            V[end] = np.maximum(V[end], cand)
+        L = np.arange(tmin, min(tmax, end + 1) + 1)  # every length of the last segment at once
+        start = end - L + 1
+        # entering texton j: log π at frame 0, else the best predecessor i ending before start
+        prev = np.max(V[np.maximum(start - 1, 0)][:, :, None] + log_M, axis=1)
+        enter = np.where((start == 0)[:, None], log_pi, prev)
+        cand = enter + table[:, start, end].T + log_dur[:, L - tmin].T  # (lengths, textons)
+        if len(L):
+            V[end] = cand.max(axis=0)
     return V.max(axis=1)
 
 
@@ -348,9 +359,16 @@ def _clips(seed=0, n=3, T=240, D=5):
     return [_smooth(rng, T, D) for _ in range(n)]
 
 
-def test_learn_defaults_are_stable_tied_with_durations():
+@pytest.fixture(scope="module")
+def default_texture():
+    """Clips and the texture learned from them with the default settings: learned once for
+    the tests of the defaults and of the fitted durations."""
     ys = _clips()
-    tex = mj.learn(ys, mj.LearnConfig(tmin=20, tmax=60, max_iter=3))
+    return ys, mj.learn(ys, mj.LearnConfig(tmin=20, tmax=60, max_iter=3))
+
+
+def test_learn_defaults_are_stable_tied_with_durations(default_texture):
+    ys, tex = default_texture
     cfg = tex.config
     assert cfg.observation == "tied" and cfg.durations == "lognormal" and cfg.init == "chunks"
     assert cfg.state_dim == 5 and cfg.dof == 4.0
@@ -374,10 +392,10 @@ def test_learn_defaults_are_stable_tied_with_durations():
         assert np.abs(out).max() < 20 * span
 
 
-def test_synthesis_draws_lengths_from_the_fitted_durations():
+def test_synthesis_draws_lengths_from_the_fitted_durations(default_texture):
     import equinox as eqx
 
-    tex = mj.learn(_clips(2), mj.LearnConfig(tmin=20, tmax=60, max_iter=2))
+    _, tex = default_texture
     assert tex.log_durations is not None
     # every texton's duration distribution a point mass at 33 frames
     point = np.full(tex.log_durations.shape, -np.inf)
