@@ -195,7 +195,7 @@ def main() -> None:
         except RuntimeError as e:  # reported, and the other calls still measured
             print(e, flush=True)
             continue
-        rows[call] = dict(cold=cold, warm=warm)
+        rows[call] = dict(cold=cold, warm=warm, measured=time.strftime("%Y-%m-%dT%H:%M"))
         print(call, json.dumps(rows[call]), flush=True)
         write(args.out, rows, load0, os.getloadavg())
 
@@ -214,9 +214,10 @@ def write(out: Path, rows: dict, load0, load1) -> None:
         "",
         made_by(),
         "",
-        f"Run on {time.strftime('%Y-%m-%dT%H:%M:%S%z')}, {os.cpu_count()} CPUs, float64; load "
-        f"average (1, 5, 15 min) {load0[0]:.1f}, {load0[1]:.1f}, {load0[2]:.1f} before / "
-        f"{load1[0]:.1f}, {load1[1]:.1f}, {load1[2]:.1f} after.",
+        f"Last run {max(str(r.get('measured', '')) for r in rows.values())}, "
+        f"{os.cpu_count()} CPUs, float64; load average (1, 5, 15 min) {load0[0]:.1f}, "
+        f"{load0[1]:.1f}, {load0[2]:.1f} before / {load1[0]:.1f}, {load1[1]:.1f}, "
+        f"{load1[2]:.1f} after it.",
         "",
         "The texture: defaults on the 10 training clips at 60 Hz; the lengths: "
         f"{lengths()} (clean and edit: 20 s motions of 1201–1210 frames). First call: in a "
@@ -224,9 +225,12 @@ def write(out: Path, rows: dict, load0, load1) -> None:
         "or filled by the cold process (warm). Programs: lowered to XLA over the 10 lengths "
         "after the warm-up call.",
         "",
+        "A run with `--calls` measures those calls again and keeps the other rows; the last "
+        "column says when each row was measured.",
+        "",
         "| call | first, cold cache (s) | first, warm cache (s) | median of 10 new lengths (s) "
-        "| target (s) | programs over 10 lengths | warm repeat (s) |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| target (s) | programs over 10 lengths | warm repeat (s) | measured |",
+        "|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for call in [c for c in CALLS if c in rows]:
         c, w = rows[call]["cold"], rows[call]["warm"]
@@ -238,7 +242,7 @@ def write(out: Path, rows: dict, load0, load1) -> None:
         progs = c.get("programs", "–")
         lines.append(
             f"| `{call}` | {c['first_s']:.2f} | {w['first_s']:.2f} | {med_s} | {lim_s} "
-            f"| {progs} | {c['repeat_s']:.3f} |"
+            f"| {progs} | {c['repeat_s']:.3f} | {rows[call].get('measured', '–')} |"
         )
     if "score_held_out" in rows:
         r = rows["score_held_out"]
