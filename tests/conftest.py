@@ -68,3 +68,40 @@ def cmu_motions(cmu_files):
     import mtex_jax as mj
 
     return [mj.read_bvh(f) for f in cmu_files]
+
+
+# the implicit-model test modules (test_implicit, test_tracking) share these, built once per
+# test process: the CMU salsa clips at 30 Hz, the database's equal-length training chunks and
+# the default implicit model on them (test_tracking's default database is test_implicit's
+# model: the same chunks and window)
+_SALSA30_HELD_OUT = 2  # 60_03 is held out of the database: probes and the tracked clip
+_SALSA30_CHUNK = 128  # equal-length training chunks: one jit compilation of the features
+_SALSA30_WINDOW = 10  # frames of the default model's windows
+
+
+@pytest.fixture(scope="session")
+def salsa30_held_out() -> int:
+    """The index of the clip that :func:`salsa30_chunks` leaves out."""
+    return _SALSA30_HELD_OUT
+
+
+@pytest.fixture(scope="session")
+def salsa30(cmu_motions):
+    """The 14 CMU salsa clips at 30 Hz."""
+    return [m.resample(30.0) for m in cmu_motions]
+
+
+@pytest.fixture(scope="session")
+def salsa30_chunks(salsa30):
+    """``128``-frame chunks of every clip but the held-out one."""
+    train = [m for i, m in enumerate(salsa30) if i != _SALSA30_HELD_OUT]
+    n = _SALSA30_CHUNK
+    return [m[i : i + n] for m in train for i in range(0, m.n_frames - n + 1, n)]
+
+
+@pytest.fixture(scope="session")
+def salsa30_model(salsa30_chunks):
+    """The default implicit model (10-frame windows) of :func:`salsa30_chunks`."""
+    import mtex_jax as mj
+
+    return mj.implicit.learn(salsa30_chunks, _SALSA30_WINDOW)

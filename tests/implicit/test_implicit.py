@@ -20,7 +20,7 @@ WINDOW = 10
 HELD_OUT = 2  # 60_03: probes come from a clip the database has not seen
 
 
-# salsa30, salsa30_chunks and salsa30_model: tests/implicit/conftest.py (shared with
+# salsa30, salsa30_chunks and salsa30_model: tests/conftest.py (shared with
 # test_tracking, built once per process)
 @pytest.fixture(scope="module")
 def train(salsa30_chunks, salsa30_held_out):

@@ -24,7 +24,7 @@ WINDOW = 10
 HELD_OUT = 2  # 60_03 is tracked; the database holds the other 13 clips
 
 
-# salsa30, salsa30_chunks and salsa30_model: tests/implicit/conftest.py (shared with
+# salsa30, salsa30_chunks and salsa30_model: tests/conftest.py (shared with
 # test_implicit, built once per process)
 @pytest.fixture(scope="module")
 def chunks(salsa30_chunks, salsa30_held_out):
