@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ..core import as_array, cut_frames
+from ..core import as_array, cut_frames, pad_frames
 from ..motion import FeatureMap
 from ._banded import PointTargets
 from ._constraints import Constraints, EditWeights
@@ -50,14 +50,13 @@ def edit_length(n: int) -> int:
     return -(-n // step) * step
 
 
-def _pad(a: Any, n: int, fill: Any = None, axis: int = 0) -> jax.Array:
-    """``a`` padded on the host along ``axis`` to ``n`` entries: the last entry repeated, or
-    ``fill``."""
+def _pad(a: Any, n: int, fill: Any = None) -> jax.Array:
+    """``a`` padded on the host along axis 0 to ``n`` entries: the last entry repeated
+    (:func:`~mtex_jax.core.pad_frames`), or ``fill``."""
     x = np.asarray(a)
-    widths = [(0, 0)] * x.ndim
-    widths[axis] = (0, n - x.shape[axis])
     if fill is None:
-        return as_array(np.pad(x, widths, mode="edge"))
+        return as_array(pad_frames(x, n, axis=0))
+    widths = [(0, n - x.shape[0])] + [(0, 0)] * (x.ndim - 1)
     return as_array(np.pad(x, widths, mode="constant", constant_values=fill))
 
 
@@ -77,7 +76,7 @@ def pad_inputs(
         dyn_labels=_pad(seg.dyn_labels, n),
         position=_pad(seg.position, n),
     )
-    poses = np.asarray(cons.poses).copy()
+    poses = np.asarray(cons.poses)
     poses = np.concatenate([poses, np.asarray(Yp)[T:].astype(poses.dtype)])
     consp = eqx.tree_at(
         lambda c: (c.pose_mask, c.poses, c.plant, c.plant_height, c.lift),
