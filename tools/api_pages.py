@@ -32,6 +32,7 @@ SECTIONS = {
     "core._keys": "Checks",
     "core._cache": "Compilation cache",
     "linalg._blocktridiag": "Block-tridiagonal Cholesky",
+    "linalg._blockpenta": "Block-pentadiagonal Cholesky (one frame per block)",
     "linalg._banded": "Block-banded solves",
     "motion._skeleton": "Skeletons",
     "motion._motion": "Motions",

@@ -120,6 +120,7 @@ def solve_edit_gn(
     max_steps: int = 8,
     rtol: float = 1e-6,
     xtol: float = 1e-4,
+    chord: bool = True,
 ) -> EditResult:
     """The jit-compatible banded Gauss–Newton core (one motion; ``vmap`` it for a batch).
 
@@ -138,6 +139,7 @@ def solve_edit_gn(
         root_smooth: per metre of the offset's second difference (with ``move_root``).
         rounds: multiplier rounds; max_steps: Gauss–Newton steps per round.
         rtol, xtol: stopping test of :func:`~mtex_jax.edit._banded.solve_banded`.
+        chord: reuse factorisations between steps (:func:`~mtex_jax.edit._banded.solve_banded`).
 
     Returns:
         :class:`EditResult` (``u`` holds the displacement ``Y − Y₀``).
@@ -181,6 +183,7 @@ def solve_edit_gn(
         rtol=rtol,
         xtol=xtol,
         colouring=channel_colouring(fm, prob.keep),
+        chord=chord,
     )
     z, sp = sol.z, prob.sp
     Y = jnp.where(cons.pose_mask[:, None], cons.poses.astype(dt), Y0 + z * free_ch)

@@ -244,22 +244,23 @@ def prior_hessian(
     G2 = -(Bi @ tx.A2.astype(dtype)) @ Ct
     ok = _valid(T, n_valid)
     has_dyn = ((jnp.arange(T) >= 2) & ok)[:, None, None]
-    G0, G1, G2 = (jnp.where(has_dyn, a[dyn], 0.0) for a in (G0, G1, G2))
     L0i = tx.L0_inv.astype(dtype)
     K1 = L0i[:, :, :k] @ Ct
     K0 = L0i[:, :, k:] @ Ct
     has_init = ((seg.position == 1) & ok)[:, None, None]
-    K1, K0 = (jnp.where(has_init, a[own], 0.0) for a in (K1, K0))
     D = Ct.shape[-1]
     C = tx.C.astype(dtype)
     proj = (jnp.eye(D, dtype=dtype) - C @ Ct) * (tx.inv_sigma.astype(dtype) ** 2)[:, None, None]
-    OtO = proj[own] * ok[:, None, None]  # (I − CCᵀ)ᵀ(I − CCᵀ)/σ² = (I − CCᵀ)/σ²
-    tt = lambda a, b: jnp.einsum("tkd,tke->tde", a, b)
+    # the per-frame blocks are per-texton products gathered by frame (N·k·D² work, not T·k·D²)
+    tt = lambda a, b: jnp.einsum("nkd,nke->nde", a, b)
     nxt = lambda a, n: jnp.concatenate([a[n:], jnp.zeros((n, *a.shape[1:]), a.dtype)], axis=0)
-    H0 = tt(G0, G0) + nxt(tt(G1, G1), 1) + nxt(tt(G2, G2), 2) + tt(K0, K0)
-    H0 = H0 + nxt(tt(K1, K1), 1) + OtO
-    H1 = tt(G0, G1) + nxt(tt(G1, G2), 1) + tt(K0, K1)
-    H2 = tt(G0, G2)
+    dyn_of = lambda a: jnp.where(has_dyn, a[dyn], 0.0)  # a texton product at each frame
+    init_of = lambda a: jnp.where(has_init, a[own], 0.0)
+    H0 = dyn_of(tt(G0, G0)) + nxt(dyn_of(tt(G1, G1)), 1) + nxt(dyn_of(tt(G2, G2)), 2)
+    H0 = H0 + init_of(tt(K0, K0)) + nxt(init_of(tt(K1, K1)), 1)
+    H0 = H0 + proj[own] * ok[:, None, None]  # (I − CCᵀ)ᵀ(I − CCᵀ)/σ² = (I − CCᵀ)/σ²
+    H1 = dyn_of(tt(G0, G1)) + nxt(dyn_of(tt(G1, G2)), 1) + init_of(tt(K0, K1))
+    H2 = dyn_of(tt(G0, G2))
     return H0, H1, H2
 
 

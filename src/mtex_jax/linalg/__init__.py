@@ -10,6 +10,11 @@ from ._banded import (
     block_banded_solve_status as block_banded_solve_status,
     pair_blocks as pair_blocks,
 )
+from ._blockpenta import (
+    BlockPentaCholesky as BlockPentaCholesky,
+    block_penta_cholesky as block_penta_cholesky,
+    block_penta_solve as block_penta_solve,
+)
 from ._blocktridiag import (
     BandedSolution as BandedSolution,
     BlockTridiagCholesky as BlockTridiagCholesky,
@@ -21,10 +26,13 @@ from ._blocktridiag import (
 
 __all__ = [
     "BandedSolution",
+    "BlockPentaCholesky",
     "BlockTridiagCholesky",
     "block_banded_matvec",
     "block_banded_solve",
     "block_banded_solve_status",
+    "block_penta_cholesky",
+    "block_penta_solve",
     "block_tridiag_cholesky",
     "block_tridiag_solve",
     "pair_blocks",

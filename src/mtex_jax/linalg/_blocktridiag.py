@@ -116,7 +116,7 @@ class BandedSolution(eqx.Module):
 # --------------------------------------------------------------------------------------------
 
 
-def _tri_right(L: Array, B: Array, *, transpose: bool) -> Array:
+def tri_right(L: Array, B: Array, *, transpose: bool) -> Array:
     """``X`` with ``X Lᵀ = B`` (``transpose``) or ``X L = B``; ``L`` lower triangular ``(b, b)``.
 
     ``B`` is ``(rows, b)``; it is split into row chunks of at most ``_TRSM_MAX_ENTRIES``
@@ -143,7 +143,7 @@ def _put(a: Array, v: Array, i: Array, *offsets: int) -> Array:
     return lax.dynamic_update_slice(a, v[None].astype(a.dtype), start)
 
 
-def _pivot_status(diag_of_factor: Array) -> tuple[Array, Array, Array]:
+def pivot_status(diag_of_factor: Array) -> tuple[Array, Array, Array]:
     """From ``(n, b)`` pivot diagonals: per-block ``good``, overall ``ok``, ``first_bad``."""
     good = jnp.all(jnp.isfinite(diag_of_factor) & (diag_of_factor > 0), axis=-1)
     ok = jnp.all(good)
@@ -167,11 +167,11 @@ def block_tridiag_factor(diag: Array, sub: Array) -> BlockTridiagCholesky:
         D, S = blocks
         Mp = S @ Linv_prev.T  # M_{I−1} = A_{I,I−1} L_{I−1}⁻ᵀ
         L = lax.linalg.cholesky(D - Mp @ Mp.T, symmetrize_input=False)
-        Linv = _tri_right(L, eye, transpose=True).T  # (I L⁻ᵀ)ᵀ = L⁻¹
+        Linv = tri_right(L, eye, transpose=True).T  # (I L⁻ᵀ)ᵀ = L⁻¹
         return Linv, (Linv, Mp)
 
     _, (Linv, Mp) = lax.scan(step, jnp.zeros((b, b), dt), (diag, sub_prev))
-    good, ok, first_bad = _pivot_status(jnp.diagonal(Linv, axis1=-2, axis2=-1))
+    good, ok, first_bad = pivot_status(jnp.diagonal(Linv, axis1=-2, axis2=-1))
     Linv = jnp.where(good[:, None, None], Linv, 0.0)
     M = jnp.where(good[:-1, None, None], Mp[1:], 0.0)
     return BlockTridiagCholesky(Linv=Linv, M=M, ok=ok, first_bad=first_bad)
@@ -295,7 +295,7 @@ def solve_rows_fused(D: Array, S: Array, r: Array) -> tuple[Array, Array, Array]
         X, SXLb = carry
         G = _row(DR, i) - X @ X[:b].T
         L = lax.linalg.cholesky(G[:b], symmetrize_input=False)
-        X = _tri_right(L, jnp.concatenate([_row(SXLb, i)[:b], G[b:]], axis=0), transpose=True)
+        X = tri_right(L, jnp.concatenate([_row(SXLb, i)[:b], G[b:]], axis=0), transpose=True)
         return X, _put(SXLb, jnp.concatenate([X, L], axis=0), i)
 
     _, SXL = lax.fori_loop(0, n, fwd, (jnp.zeros((b + m, b), dt), SXL))
@@ -304,11 +304,11 @@ def solve_rows_fused(D: Array, S: Array, r: Array) -> tuple[Array, Array, Array]
         i = n - 1 - j
         x_next, SXLb = carry
         blk = _row(SXLb, i)
-        x = _tri_right(blk[b + m :], blk[b : b + m] - x_next @ blk[:b], transpose=False)
+        x = tri_right(blk[b + m :], blk[b : b + m] - x_next @ blk[:b], transpose=False)
         return x, _put(SXLb, x, i, b)
 
     _, SXL = lax.fori_loop(0, n, bwd, (jnp.zeros((m, b), r.dtype), SXL))
-    _, ok, first_bad = _pivot_status(jnp.diagonal(SXL[:, b + m :], axis1=-2, axis2=-1))
+    _, ok, first_bad = pivot_status(jnp.diagonal(SXL[:, b + m :], axis1=-2, axis2=-1))
     return jnp.where(ok, SXL[:, b : b + m], 0.0), ok, first_bad
 
 
