@@ -148,6 +148,46 @@ def test_choreograph_compiles_per_bucket():
     assert _programs(f, lengths=[300, 450, 811, 1203, 1999], warm=700) <= 3
 
 
+@pytest.mark.parametrize("mode", ["ends", "free", "edits"])
+def test_synthesize_texton_compiles_per_bucket(tex, mode):
+    """``synthesize_texton`` of a learned texton between two key poses (the bridge), noise
+    driven, and with edits (banded): one program per bucket of lengths. The results against
+    the unpadded computation: ``tests/texture/test_texton_buckets.py``."""
+    # a stable texton (noise driven, an unstable one overflows over 3,000 frames)
+    i = int(np.argmin(np.asarray(T.spectral_radius(tex.textons))))
+    t = jax.tree.map(lambda a: a[i], tex.textons)
+    assert float(T.spectral_radius(t)) < 1.0
+    kp = np.asarray(tex.key_poses)
+    s, e = kp[0], kp[-1]
+    key = jax.random.key(4)
+
+    def f(n):
+        if mode == "ends":
+            return T.synthesize_texton(key, t, n, s, e).block_until_ready()
+        if mode == "free":
+            return T.synthesize_texton(key, t, n, s).block_until_ready()
+        mask = np.zeros(n, bool)
+        mask[n // 2] = True
+        poses = np.broadcast_to(kp[1, 0], (n, kp.shape[-1]))
+        return T.synthesize_texton(key, t, n, s, e, (mask, poses)).block_until_ready()
+
+    assert _programs(f) <= 3
+
+
+def test_metric_kernels_compile_per_bucket(tex, Y):
+    """The baselines' densities and predictions and the texture's one-step predictions (its
+    segmentation's programs, one per 1,024-frame bucket, and one prediction program on
+    fixed blocks of frames). The results against the unpadded kernels:
+    ``tests/metrics/test_metric_buckets.py``."""
+    from mtex_jax import metrics as M
+
+    ar = M.fit_ar2([Y[:1000]])
+    assert _programs(lambda n: ar.log_likelihood(Y[:n])) <= 3
+    assert _programs(lambda n: ar.log_likelihood(Y[:n], per_frame=True)) <= 3
+    assert _programs(lambda n: np.asarray(ar.predict(Y[:n]))) <= 3
+    assert _programs(lambda n: np.asarray(M.texture_predict(tex, Y[:n])[0])) <= 3
+
+
 def test_decode_in_a_bucket_equals_unpadded(tex, Y):
     fm = tex.feature_map
     m = fm.decode(Y[:777])

@@ -39,6 +39,8 @@ CALLS = [
     "score_held_out",
     "clean",
     "edit",
+    "synthesize_texton",
+    "texture_predict",
 ]
 
 
@@ -95,6 +97,12 @@ def worker(call: str, models: Path, loop: bool) -> dict:
             return m.root_positions.block_until_ready()
         if call == "score_held_out":
             return np.asarray(tex.log_likelihood(held))
+        if call == "synthesize_texton":  # texton 0 between two key poses (the bridge)
+            t0_ = jax.tree.map(lambda a: a[0], tex.textons)
+            kp = np.asarray(tex.key_poses)
+            return mj.texture.synthesize_texton(key, t0_, n, kp[0], kp[-1]).block_until_ready()
+        if call == "texture_predict":  # a metric's kernel: segmentation + one-step predictions
+            return np.asarray(mj.metrics.texture_predict(tex, Y[:n])[0])
         motion = fm.decode(Y[:n])
         if call == "clean":
             return mj.edit.clean(tex, motion, contacts).Y.block_until_ready()
@@ -208,6 +216,8 @@ def write(out: Path, rows: dict, load0, load1) -> None:
         implicit_synthesize=1.0,
         clean=2.0,
         edit=2.0,
+        synthesize_texton=1.0,
+        texture_predict=1.0,
     )
     lines = [
         "# Latency of the public calls (issue 42)",

@@ -310,9 +310,12 @@ def test_edits_do_not_recompile(caplog):
     with jax.log_compiles(), caplog.at_level(logging.DEBUG):
         out = np.asarray(synthesize_texton(None, tex, length, ys[:2], ys[-2:], (m2, ys + 1.0)))
     assert not [r for r in caplog.records if "_constrained_key" in r.getMessage()]
-    # positive control: the log does show a compilation for a new static length
+    # positive control: the log does show a compilation for a length of another shape bucket
+    _, ys3, _ = random_states_case(tex, 100, rng, 0)
+    m3 = np.zeros(100, bool)
+    m3[[7, 9, 13]] = True
     with jax.log_compiles(), caplog.at_level(logging.DEBUG):
-        synthesize_texton(None, tex, length - 1, ys[:2], ys[-2:], (m2[:-1], ys[:-1]))
+        synthesize_texton(None, tex, 100, ys3[:2], ys3[-2:], (m3, ys3))
     assert [r for r in caplog.records if "_constrained_key" in r.getMessage()]
     t = as_np(tex)
     np.testing.assert_allclose(

@@ -19,6 +19,11 @@ and ``Σ``, ``m0``, ``S0`` fitted on the training residuals and first-pair stati
 case. Log-densities are exact: ``log p(y_0:T−1) = log N((y_0, y_1); m0, S0) + Σ_t log N(e_t;
 0, Σ)``, so the figures are comparable with the marginal likelihood of a motion texture on the
 same observation vectors (every frame scored).
+
+The kernels run in shape buckets (design §11): a sequence is padded (last frame repeated) to
+:func:`~mtex_jax.core.bucket_length` frames, every output row depends on its own frame and
+the two before it, and the rows of the padding are cut on the host, so one program serves
+every length of a bucket and the rows are those of the unpadded computation.
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
+
+from ..core import as_array, bucket_length, cut_frames, pad_frames
 
 __all__ = ["GaussianAR2", "constant_velocity", "fit_ar2", "hold_last", "prediction_error"]
 
@@ -79,13 +86,17 @@ class GaussianAR2(eqx.Module):
         return int(np.shape(self.c)[0])
 
     def predict(self, Y: Float[ArrayLike, "T D"]) -> Float[Array, "T2 D"]:
-        """One-step predictive means ``ŷ_t = A1 y_{t−1} + A2 y_{t−2} + c`` for ``t = 2…T−1``."""
-        return _predict(self, _check_seq(Y, self.obs_dim, "Y"))
+        """One-step predictive means ``ŷ_t = A1 y_{t−1} + A2 y_{t−2} + c`` for ``t = 2…T−1``
+        (computed in a shape bucket, design §11)."""
+        y = _check_seq(Y, self.obs_dim, "Y")
+        return cut_frames(_predict(self, _bucketed(y)), y.shape[0] - 2)
 
     def frame_log_density(self, Y: Float[ArrayLike, "T D"]) -> Float[Array, " T1"]:
         """Per-step log-densities: ``log p(y_0, y_1)`` first, then ``log p(y_t | y_{t−1},
-        y_{t−2})`` for ``t = 2…T−1`` (``T − 1`` numbers that sum to ``log p(Y)``)."""
-        return _frame_log_density(self, _check_seq(Y, self.obs_dim, "Y"))
+        y_{t−2})`` for ``t = 2…T−1`` (``T − 1`` numbers that sum to ``log p(Y)``; computed
+        in a shape bucket, design §11)."""
+        y = _check_seq(Y, self.obs_dim, "Y")
+        return cut_frames(_frame_log_density(self, _bucketed(y)), y.shape[0] - 1)
 
     @overload
     def log_likelihood(
@@ -110,10 +121,17 @@ class GaussianAR2(eqx.Module):
         if mean and per_frame:
             raise ValueError("mean=True and per_frame=True exclude each other")
         y = _check_seq(Y, self.obs_dim, "Y")
+        T = y.shape[0]
         if per_frame:
-            return np.asarray(_chain_log_density(self, y), np.float64)
-        ll = float(jnp.sum(_frame_log_density(self, y)))
-        return ll / (y.shape[0] if mean else 1)
+            return np.asarray(_chain_log_density(self, _bucketed(y)), np.float64)[:T]
+        # the frames' terms in a shape bucket (design §11), summed on the host
+        ll = float(np.sum(np.asarray(_frame_log_density(self, _bucketed(y)))[: T - 1]))
+        return ll / (T if mean else 1)
+
+
+def _bucketed(y: Array) -> Array:
+    """``y`` padded to its shape bucket (last frame repeated, design §11)."""
+    return pad_frames(y, bucket_length(y.shape[0]), axis=0)
 
 
 @eqx.filter_jit
@@ -155,15 +173,16 @@ def _chain_log_density(model: GaussianAR2, Y: Array) -> Array:
 
 
 def _check_seq(Y: ArrayLike, D: int | None, name: str) -> Array:
-    y = jnp.asarray(Y)
+    # checked on the host: an eager jnp operation would compile a program per length
+    y = as_array(Y)
     if y.ndim != 2 or (D is not None and y.shape[1] != D):
         want = "(T, D)" if D is None else f"(T, {D})"
         raise ValueError(f"{name} must have shape {want}, got {tuple(y.shape)}")
     if y.shape[0] < 3:
         raise ValueError(f"{name} has {y.shape[0]} frames; a second-order model needs >= 3")
     if not jnp.issubdtype(y.dtype, jnp.floating):
-        y = y.astype(jnp.result_type(float))
-    if not bool(jnp.all(jnp.isfinite(y))):
+        y = as_array(np.asarray(y).astype(jnp.result_type(float)))
+    if not np.isfinite(np.asarray(y)).all():
         raise ValueError(f"{name} contains NaN or inf")
     return y
 

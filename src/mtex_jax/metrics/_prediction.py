@@ -12,6 +12,13 @@ with the whole clip in view), and that texton's dynamics on its own state:
 and the part of ``y`` outside the texton's subspace, ``r = (I − C Cᵀ)(y − μ)``, by the
 texton's residual AR(2), ``r̂_t = a₁ r_{t−1} + a₂ r_{t−2}`` (``"residual"`` textons; the
 others have ``a = 0``: the texton's mean, as in the paper).
+
+The kernel runs on fixed blocks of :data:`PREDICT_BLOCK` predicted frames (design §11): the
+observations are padded (last frame repeated, label 0) to whole blocks, each block (its
+frames and the two before) is one call of one compiled program, and the padding's rows are
+cut on the host. Every row depends on its own frame's texton and the two frames before, so
+the rows are those of the unpadded kernel, and a clip of any length compiles no program
+besides its segmentation's.
 """
 
 from __future__ import annotations
@@ -22,9 +29,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ..core import bucket_length
 from ..texture import MotionTexture, Segmentation, Texton
 
 __all__ = ["texture_predict"]
+
+#: Predicted frames per call of the one-step prediction's kernel (one program for all lengths).
+PREDICT_BLOCK = 512
 
 
 @eqx.filter_jit
@@ -64,11 +75,21 @@ def texture_predict(
 
 
 def predict_segmented(
-    texture: MotionTexture, y: Array, seg: Segmentation
+    texture: MotionTexture, y: Float[ArrayLike, "T D"], seg: Segmentation
 ) -> tuple[Float[Array, "T2 D"], np.ndarray]:
     """:func:`texture_predict` with the best segmentation of ``y`` already computed."""
-    labels = seg.frame_labels(y.shape[0])
+    labels = seg.frame_labels(int(np.shape(y)[0]))
     if np.any(labels < 0):
         raise ValueError("the texture found no segmentation of Y (is it shorter than tmin?)")
-    pred = _predict_labelled(texture.textons, jnp.asarray(labels[1:-1]), y)
-    return pred, labels
+    T = int(np.shape(y)[0])
+    # fixed blocks of predicted frames, one program for every length (design §11)
+    B = PREDICT_BLOCK
+    n = bucket_length(T - 2, B)
+    lab = np.pad(np.asarray(labels[1:-1], np.int32), (0, n - (T - 2)))
+    yp = np.pad(np.asarray(y), ((0, n + 2 - T), (0, 0)), mode="edge")
+    put = jax.device_put
+    pred = [
+        np.asarray(_predict_labelled(texture.textons, put(lab[a : a + B]), put(yp[a : a + B + 2])))
+        for a in range(0, n, B)
+    ]
+    return put(np.concatenate(pred)[: T - 2]), labels

@@ -16,7 +16,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
 from ..motion import Motion
@@ -167,10 +166,7 @@ def density_report(
     marg = float(np.sum(texture.log_likelihood(held_y)))
     segs = texture.segment(held_y)  # score and labels of each clip
     best = sum(float(seg.score) for seg in segs)
-    preds = [
-        predict_segmented(texture, jnp.asarray(y), seg)[0]
-        for y, seg in zip(held_y, segs, strict=True)
-    ]
+    preds = [predict_segmented(texture, y, seg)[0] for y, seg in zip(held_y, segs, strict=True)]
     err = prediction_error(
         np.concatenate([np.asarray(p) for p in preds]), np.concatenate([y[2:] for y in held_y])
     )

@@ -49,62 +49,82 @@ def _adjoint_rows(Fa: Array, k: int, n: int) -> Array:
     return V
 
 
-def _gramian(Fa: Array, Pm: Array, n: int) -> Array:
-    """``X_n = Σ_{m=1}^n (F̃ᵐ)ᵀ Pm F̃ᵐ`` by doubling.
+def _bit_plan(n: int | Array, n_max: int) -> list[tuple[Any, Any]]:
+    """``(bit b of n, n ≥ 2^{b+1})`` for the binary powering loops: Python bools for a static
+    ``n`` (the loop of a fixed length), traced ones for a traced ``n ≤ n_max`` (a length in a
+    shape bucket, design §11: the loop runs over every bit of ``n_max``)."""
+    if isinstance(n, int):
+        return [(bool(n >> b & 1), n >> (b + 1) > 0) for b in range(max(n.bit_length(), 1))]
+    return [((n >> b) & 1 == 1, n >> (b + 1) > 0) for b in range(max(n_max.bit_length(), 1))]
 
-    ``X_{a+b} = X_a + (F̃ᵃ)ᵀ X_b F̃ᵃ``: ``O(log n)`` products of ``2k × 2k`` matrices.
+
+def _sel(c: Any, a: Array, b: Array) -> Array:
+    """``a if c else b``: in Python for a static ``c`` (the same operations as a plain loop),
+    ``jnp.where`` for a traced one."""
+    if isinstance(c, bool):
+        return a if c else b
+    return jnp.where(c, a, b)
+
+
+def _gramian(Fa: Array, Pm: Array, n: int | Array, n_max: int) -> Array:
+    """``X_n = Σ_{m=1}^n (F̃ᵐ)ᵀ Pm F̃ᵐ`` by doubling (``n`` static, or traced ``≤ n_max``).
+
+    ``X_{a+b} = X_a + (F̃ᵃ)ᵀ X_b F̃ᵃ``: ``O(log n)`` products of ``2k × 2k`` matrices. For a
+    traced ``n`` the same products are selected (``jnp.where``) and the powers past the
+    highest bit of ``n`` are zero (no overflow, so no NaN in derivatives).
     """
-    RF: Array | None = None
-    RX: Array | None = None
     PF, PX = Fa, Fa.T @ Pm @ Fa  # F̃¹, X_1
-    j = n
-    while j:
-        if j & 1:
-            if RF is None or RX is None:
-                RF, RX = PF, PX
-            else:
-                RX = RX + RF.T @ PX @ RF
-                RF = PF @ RF
-        j >>= 1
-        if j:
-            PX = PX + PF.T @ PX @ PF
-            PF = PF @ PF
-    assert RX is not None
+    RF, RX, started = PF, PX, False  # placeholders until the first set bit
+    for b, (bit, more) in enumerate(_bit_plan(n, n_max)):
+        if b:
+            acc = bit & started
+            RX, RF = (
+                _sel(acc, RX + RF.T @ PX @ RF, _sel(bit, PX, RX)),
+                _sel(acc, PF @ RF, _sel(bit, PF, RF)),
+            )
+        started = started | bit
+        if more is not False:
+            zero = jnp.zeros_like(PF)
+            PX = _sel(more, PX + PF.T @ PX @ PF, zero)
+            PF = _sel(more, PF @ PF, zero)
     return RX
 
 
-def bridge_usable(A1: Array, A2: Array, n: int) -> Array:
+def bridge_usable(A1: Array, A2: Array, n: int | Array, n_max: int = 0) -> Array:
     """Whether the bridge recursion is accurate for this texton over ``n`` free frames.
 
     The growth ``max |[I 0] F̃ᵖ|`` over ``p = 1, 2, 4, … ≤ n`` and ``p = n`` (a proxy for
     the largest propagator over the segment, from ``O(log n)`` squarings of
     ``F̃ = [[A1ᵀ, A2ᵀ], [I, 0]]``, no derivatives) must be finite and at most
-    ``_BRIDGE_MAX_GROWTH`` for the dtype.
+    ``_BRIDGE_MAX_GROWTH`` for the dtype. ``n`` is static, or traced and at most ``n_max``
+    (a length in a shape bucket, design §11).
     """
     A1, A2 = lax.stop_gradient(A1), lax.stop_gradient(A2)
     k = A1.shape[0]
     eye, zero = jnp.eye(k, dtype=A1.dtype), jnp.zeros((k, k), A1.dtype)
     PF = jnp.block([[A1.T, A2.T], [eye, zero]])
     growth = jnp.max(jnp.abs(PF[:k]))
-    RF: Array | None = None
-    j = n
-    while j:
-        if j & 1:
-            RF = PF if RF is None else PF @ RF
-        j >>= 1
-        if j:
-            PF = PF @ PF
-            growth = jnp.maximum(growth, jnp.max(jnp.abs(PF[:k])))
-    assert RF is not None
+    RF, started = PF, False
+    for b, (bit, more) in enumerate(_bit_plan(n, n_max)):
+        if b:
+            RF = _sel(bit & started, PF @ RF, _sel(bit, PF, RF))
+        started = started | bit
+        if more is not False:
+            PF = _sel(more, PF @ PF, jnp.zeros_like(PF))
+            growth = _sel(more, jnp.maximum(growth, jnp.max(jnp.abs(PF[:k]))), growth)
     growth = jnp.maximum(growth, jnp.max(jnp.abs(RF[:k])))
     limit = _BRIDGE_MAX_GROWTH.get(jnp.dtype(A1.dtype).itemsize, 10.0)
     return jnp.isfinite(growth) & (growth <= limit)
 
 
-def _recursion(A1: Array, A2: Array, u: Array, reverse: bool = False) -> Array:
+def _recursion(
+    A1: Array, A2: Array, u: Array, reverse: bool = False, n: Array | None = None
+) -> Array:
     """``x_j = A1 x_{j−1} + A2 x_{j−2} + u_j`` from zeros, ``(n, k)`` (one ``lax.scan``).
 
     ``reverse``: the adjoint direction, ``x_j = A1 x_{j+1} + A2 x_{j+2} + u_j`` from the end.
+    ``n`` (traced, forward only): rows ``j ≥ n`` pad a shape bucket and are set to zero, so
+    that the recursion past the segment cannot overflow.
     """
     A = jnp.concatenate([A1, A2], axis=1).T  # row form: x = [x_{j−1}, x_{j−2}] Aᵀ + u
 
@@ -112,8 +132,16 @@ def _recursion(A1: Array, A2: Array, u: Array, reverse: bool = False) -> Array:
         x = c @ A + uj
         return jnp.concatenate([x, c[: x.shape[0]]]), x
 
+    def masked(c: Array, inp: tuple[Array, Array]) -> tuple[Array, Array]:
+        uj, on = inp
+        x = jnp.where(on, c @ A + uj, 0.0)
+        return jnp.concatenate([x, c[: x.shape[0]]]), x
+
     k = u.shape[1]
-    return lax.scan(step, jnp.zeros(2 * k, u.dtype), u, reverse=reverse)[1]
+    c0 = jnp.zeros(2 * k, u.dtype)
+    if n is None:
+        return lax.scan(step, c0, u, reverse=reverse)[1]
+    return lax.scan(masked, c0, (u, jnp.arange(u.shape[0]) < n), reverse=reverse)[1]
 
 
 class _BridgeInputs(eqx.Module):
@@ -127,6 +155,7 @@ class _BridgeInputs(eqx.Module):
     w: Array
     x01: Array
     xe: Array
+    n: Array | None = None  # free frames when w pads a shape bucket (traced), else None
 
 
 def _bridge_parts(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array, Array, Array]:
@@ -147,30 +176,59 @@ def _start_terms(A1: Array, A2: Array, x01: Array, n: int) -> Array:
     return jnp.pad(st, ((0, n - 2), (0, 0)))
 
 
+def _free_frames(p: _BridgeInputs) -> tuple[int, int | Array, Array | None]:
+    """``(N, n, mask)``: the rows of free frames in ``p.w`` (``N = l − 4``), the free frames
+    ``n`` (``N``, or the traced ``p.n`` of a shape bucket) and ``n`` again for the masks of
+    :func:`_recursion` (``None`` without a bucket)."""
+    N = p.w.shape[-2] - 2
+    return (N, N, None) if p.n is None else (N, p.n, p.n)
+
+
+def _rows(a: Array, i: int | Array, size: int, axis: int = 0) -> Array:
+    """``size`` rows of ``a`` from row ``i`` (static or traced) along ``axis``."""
+    if isinstance(i, int):
+        return lax.slice_in_dim(a, i, i + size, axis=axis)
+    return lax.dynamic_slice_in_dim(a, i, size, axis=axis)
+
+
+def _place_end(x: Array, xe: Array, n: int | Array) -> Array:
+    """The states ``(…, N + 4, k)`` with the end pair at rows ``n + 2, n + 3`` and zeros after
+    them (a shape bucket's padding; nothing to do without one)."""
+    if isinstance(n, int):
+        return x
+    x = lax.dynamic_update_slice_in_dim(x, xe, n + 2, axis=-2)
+    keep = (jnp.arange(x.shape[-2]) < n + 4)[:, None]
+    return jnp.where(keep, x, 0.0)
+
+
 def _bridge_single(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array]:
     """:func:`solve_bridge` for one sample: ``O(log n)`` small products and three vector scans.
 
     ``ZᵀZ = Sᵀ X_n S`` with the Gramian ``X_n = Σ_m (F̃ᵐ)ᵀ [[M, 0], [0, 0]] F̃ᵐ``
     (:func:`_gramian`); ``Zᵀ c_a = G_b G_a⁻¹ c_a`` from the free motion ``x_u = G_a⁻¹ c_a``
     (the noise-driven recursion, forward scan); ``U_i α`` by the adjoint recursion (backward
-    scan); the correction ``G_a⁻¹ (Z α)`` by a third scan.
+    scan); the correction ``G_a⁻¹ (Z α)`` by a third scan. In a shape bucket (``p.n``) the
+    scans run over the bucket (the forward ones causal and zero past the segment, the
+    backward one zero until it reaches the end of the segment).
     """
     dt = p.A1.dtype
-    n, k = p.w.shape[0] - 2, p.A1.shape[0]
+    k = p.A1.shape[0]
+    N, n, mask = _free_frames(p)
     Wt, M, Fa, S = _bridge_parts(p, whitened)
     Pm = jnp.zeros((2 * k, 2 * k), dt).at[:k, :k].set(M)
-    X = _gramian(Fa, Pm, n)
+    X = _gramian(Fa, Pm, n, N)
     Lc = jnp.linalg.cholesky(jnp.eye(2 * k, dtype=dt) + sym(S.T @ X @ S))
     f = p.d + p.w  # (l−2, k): f_j = d + B v_j, row j−2
-    fa = f[:n] + _start_terms(p.A1, p.A2, p.x01, n)
-    xu = _recursion(p.A1, p.A2, fa)  # the free (noise-driven) motion, frames 2 … l−3
-    xl3, xl4 = xu[-1], xu[-2]
+    fa = f[:N] + _start_terms(p.A1, p.A2, p.x01, N)
+    xu = _recursion(p.A1, p.A2, fa, n=mask)  # the free (noise-driven) motion, frames 2 … l−3
+    xl4, xl3 = _rows(xu, n - 2, 2)
+    fn, fn1 = _rows(f, n, 2)
     xe = p.xe
     # c_b − G_b x_u: the two end equations' residuals at the free motion (units of W·)
     e = jnp.concatenate(
         [
-            (f[n] - xe[0] + p.A1 @ xl3 + p.A2 @ xl4) @ Wt,
-            (f[n + 1] - xe[1] + p.A1 @ xe[0] + p.A2 @ xl3) @ Wt,
+            (fn - xe[0] + p.A1 @ xl3 + p.A2 @ xl4) @ Wt,
+            (fn1 - xe[1] + p.A1 @ xe[0] + p.A2 @ xl3) @ Wt,
         ]
     )
     alpha = jsl.cho_solve((Lc, True), e)
@@ -178,11 +236,12 @@ def _bridge_single(p: _BridgeInputs, whitened: bool) -> tuple[Array, Array]:
     # U_i α for i = l−3 … 2: the adjoint recursion u_i = A1ᵀ u_{i+1} + A2ᵀ u_{i+2} from
     # the two end values, entered as inputs of its first two steps
     ua, ub = Sa[:k], Sa[k:]
-    seed = jnp.zeros((n, k), dt).at[-1].set(p.A1.T @ ua + p.A2.T @ ub)
-    seed = seed.at[-2].add(p.A2.T @ ua)
+    seed = jnp.zeros((N, k), dt).at[n - 1].set(p.A1.T @ ua + p.A2.T @ ub)
+    seed = seed.at[n - 2].add(p.A2.T @ ua)
     u = _recursion(p.A1.T, p.A2.T, seed, reverse=True)
-    x = xu + _recursion(p.A1, p.A2, u @ M.T)
-    return jnp.concatenate([p.x01, x, p.xe], axis=0), _chol_ok(Lc)
+    x = xu + _recursion(p.A1, p.A2, u @ M.T, n=mask)
+    x = jnp.concatenate([p.x01, x, p.xe], axis=0)
+    return _place_end(x, xe, n), _chol_ok(Lc)
 
 
 def _chol_ok(Lc: Array) -> Array:
@@ -226,17 +285,27 @@ def _bridge_batched(
     ``X_b = c_b Tᵀ + R_b`` over the batch, in place in ``R`` (batch-major, so that no
     transposed copy of the batch is made).
 
+    In a shape bucket (``p.n``, traced) the rows ``U_i`` past the segment are zero and the
+    recursion is zero past it.
+
     Returns:
         states ``(N, l, k)`` and ``ok`` (unbatched).
     """
     w = p.w
     dt = w.dtype
-    n, k = w.shape[-2] - 2, p.A1.shape[0]
+    k = p.A1.shape[0]
+    n, nv, mask = _free_frames(p)  # n rows of free frames, nv of them real
     m = _BRIDGE_BLOCK
     nb = -(-n // m)
     Wt, M, Fa, S = _bridge_parts(p, whitened)
     V = _adjoint_rows(Fa, k, n)  # V_m, m = 1 … n
-    U = (V.reshape(n * k, 2 * k) @ S).reshape(n, k, 2 * k)[::-1]  # U_i, i = 2 … l−3
+    if mask is None:
+        U = (V.reshape(n * k, 2 * k) @ S).reshape(n, k, 2 * k)[::-1]  # U_i, i = 2 … l−3
+    else:  # U_i = V_{nv+1−i}, zero past the segment
+        j = jnp.arange(n)
+        Vr = jnp.take(V, jnp.clip(nv - 1 - j, 0, n - 1), axis=0)
+        Vr = jnp.where((j < nv)[:, None, None], Vr, 0.0)
+        U = (Vr.reshape(n * k, 2 * k) @ S).reshape(n, k, 2 * k)
     Uf = U.reshape(n * k, 2 * k)
     MU = jnp.einsum("ab,ibc->iac", M, U)
     Lc = jnp.linalg.cholesky(jnp.eye(2 * k, dtype=dt) + sym(Uf.T @ MU.reshape(n * k, 2 * k)))
@@ -256,7 +325,8 @@ def _bridge_batched(
     if not w_b:
         w = jnp.broadcast_to(w, (N, *w.shape))
     wa = w[:, :n]
-    e = e0 - wa.reshape(N, n * k) @ Uf + jnp.concatenate([w[:, n] @ Wt, w[:, n + 1] @ Wt], 1)
+    wn, wn1 = jnp.moveaxis(_rows(w, nv, 2, axis=1), 1, 0)
+    e = e0 - wa.reshape(N, n * k) @ Uf + jnp.concatenate([wn @ Wt, wn1 @ Wt], 1)
     # (I + ZᵀZ)⁻¹ explicitly (2k × 2k, ≥ I so well conditioned): one GEMM for the batch
     # instead of two triangular solves with N right-hand sides
     Ginv = jsl.cho_solve((Lc, True), jnp.eye(2 * k, dtype=dt))
@@ -270,12 +340,14 @@ def _bridge_batched(
     def body(b: Array, carry: tuple[Array, Array]) -> tuple[Array, Array]:
         X_prev, R = carry
         X = X_prev[:, -2 * k :] @ Ts + lax.dynamic_index_in_dim(R, b, axis=1, keepdims=False)
+        if mask is not None:  # zero past the segment: no overflow in a bucket's padding
+            X = jnp.where(jnp.repeat(b * m + jnp.arange(m), k) < mask, X, 0.0)
         return X, lax.dynamic_update_index_in_dim(R, X, b, axis=1)
 
     _, R = lax.fori_loop(0, nb, body, (jnp.zeros((N, m * k), dt), R))
     ends = lambda a: a if poses_b else jnp.broadcast_to(a, (N, 2, k))
     x = jnp.concatenate([ends(p.x01), R.reshape(N, nb * m, k)[:, :n], ends(p.xe)], axis=1)
-    return x, _chol_ok(Lc)
+    return _place_end(x, ends(p.xe), nv), _chol_ok(Lc)
 
 
 def _make_bridge(whitened: bool) -> Any:
@@ -291,7 +363,7 @@ def _make_bridge(whitened: bool) -> Any:
     @vmappable.def_vmap
     def rule(axis_size: int, in_batched: list[Any], p: _BridgeInputs) -> Any:
         f = in_batched[0]
-        if not (f.A1 or f.A2 or f.B or f.d):
+        if not (f.A1 or f.A2 or f.B or f.d or f.n):
             poses_b = bool(f.x01 or f.xe)
             if poses_b:  # both poses batched (or broadcast) together
                 bc = lambda a, b: a if b else jnp.broadcast_to(a, (axis_size, *a.shape))
@@ -316,7 +388,7 @@ _BRIDGES = {True: _make_bridge(True), False: _make_bridge(False)}
 
 
 def solve_bridge(
-    tex: Texton, w: Array, x01: Array, xe: Array, weighting: str
+    tex: Texton, w: Array, x01: Array, xe: Array, weighting: str, n_valid: Array | None = None
 ) -> tuple[Array, Array]:
     """Constrained synthesis with both ends held and no edits, without the banded solve.
 
@@ -342,8 +414,16 @@ def solve_bridge(
     texton that does not amplify much over the segment (:func:`bridge_usable`): the caller
     checks that first.
 
+    ``n_valid`` (traced): a segment of ``l = n_valid`` frames in a shape bucket of ``l_b``
+    rows (design §11): ``w`` is ``(l_b − 2, k)`` (rows past ``l − 2`` unused) and the states
+    ``(l_b, k)`` hold the end pair at rows ``l − 2, l − 1`` and zeros after it. The products
+    and scans run for the bucket with the segment's bits and rows selected, so the states are
+    those of the segment alone (the same operations; the batched form sums zeros past the
+    segment into its ``2k × 2k`` system, a difference of rounding).
+
     Returns:
         states ``(l, k)`` and ``ok`` (the ``2k × 2k`` factorisation is finite).
     """
-    p = _BridgeInputs(A1=tex.A1, A2=tex.A2, B=tex.B, d=tex.d, w=w, x01=x01, xe=xe)
+    n = None if n_valid is None else jnp.asarray(n_valid, jnp.int32) - 4
+    p = _BridgeInputs(A1=tex.A1, A2=tex.A2, B=tex.B, d=tex.d, w=w, x01=x01, xe=xe, n=n)
     return _BRIDGES[weighting == "whitened"](p)

@@ -35,19 +35,28 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ...core import MAX_GENERATED_FRAMES, check_count, check_key
+from ...core import (
+    MAX_GENERATED_FRAMES,
+    as_array,
+    check_count,
+    check_key,
+    cut_frames,
+    pad_frames,
+)
 from .._noise.draws import independent_innovations
 from .._noise.innovation_process import InnovationProcess, draw_innovations
 from .._texton.texton import Texton
 from .._texton.validate import check_finite_output
 from .bridge import bridge_usable, solve_bridge
 from .normal import constrained_equations, observe, solve_constrained
+from .texton_buckets import bucket_noise, held_end, texton_bucket
 
 Weighting = Literal["whitened", "paper"]
 
@@ -55,7 +64,7 @@ Weighting = Literal["whitened", "paper"]
 def _check_frames(name: str, y: Any, shape: tuple[int, ...]) -> Array:
     if y is None:
         raise ValueError(f"{name} must be an array of shape {shape}, got None")
-    y = jnp.asarray(y)
+    y = as_array(y)  # jnp.asarray of a host array would compile a copy per shape
     if tuple(y.shape) != shape:
         raise ValueError(f"{name} must have shape {shape}, got {tuple(y.shape)}")
     if not jnp.issubdtype(y.dtype, jnp.floating):
@@ -113,7 +122,10 @@ def synthesize_texton(
     dense least squares at 1e-9 relative). Under
     ``vmap`` over keys everything that does not depend on the noise is computed once.
 
-    ``length`` is static; the mask and poses are arrays, so different edits do not recompile.
+    One program serves a shape bucket of lengths (design §11: multiples of 64 frames up to
+    192, of 1,024 above; the noise is the draw for ``length``, the rows past it are cut), and
+    the mask and poses are arrays, so neither a new length in a bucket nor a new edit
+    recompiles (with ``innovations``, a small draw program per length).
     Any ``length ≥ 4`` (``≥ 2`` without ``end``) works: the same texton extrapolates (MT Fig. 10).
     ``vmap`` over ``key`` (or over the poses) works.
 
@@ -159,7 +171,7 @@ def synthesize_texton(
     if fixed is not None:
         if not isinstance(fixed, tuple | list) or len(fixed) != 2:
             raise ValueError("fixed must be a pair (mask (length,) bool, poses (length, D))")
-        mask = jnp.asarray(fixed[0])
+        mask = as_array(fixed[0])
         if tuple(mask.shape) != (length,) or mask.dtype != jnp.bool_:
             raise ValueError(
                 f"fixed mask must be bool of shape ({length},), got {mask.dtype}"
@@ -171,15 +183,56 @@ def synthesize_texton(
         raise TypeError(
             f"innovations must be an InnovationProcess or None, got {type(innovations).__name__}"
         )
-    # the noise is drawn inside the jitted core: one dispatch per call, not two
+    # one program per shape bucket of lengths (design §11): the rows past ``length`` pad the
+    # bucket and are cut; the noise is drawn inside the program for the bucket
+    rows = texton_bucket(length)
+    n_valid = jax.device_put(np.asarray(length, np.int32))
+    if fixed_a is not None:  # the padding rows are free (past the end pair, or an open tail)
+        fixed_a = (_pad_mask(fixed_a[0], rows), pad_frames(fixed_a[1], rows, axis=0))
+    v = None
+    if innovations is not None and key is not None:
+        # the process's draws are not prefix-stable: drawn for the length (a small program
+        # per length), zero-padded to the bucket
+        v = _process_draws(key, innovations, (length - 2, texton.C.shape[-1]), rows - 2, texton)
+    bridge = end_a is not None and fixed_a is None and length >= 6
     if end_a is None and fixed_a is None:
-        out = _noise_driven_key_jit(texton, key, length, start_a, innovations)
+        out = _noise_driven_key_jit(texton, key, v, n_valid, rows, start_a)
     else:
-        out = _constrained_key_jit(
-            texton, key, length, start_a, end_a, fixed_a, weighting, innovations
+        # concrete inputs: the solve's failure is checked on the host (NaN frames), so that
+        # the program has no host callback and the persistent compilation cache keeps it
+        # (design §11); traced ones (under jit, vmap, grad): checked in the program
+        traced = any(
+            isinstance(a, Tracer)
+            for a in jax.tree.leaves((key, texton, start_a, end_a, fixed_a, innovations))
         )
+        out = _constrained_key_jit(
+            texton, key, v, n_valid, rows, start_a, end_a, fixed_a, weighting, bridge, traced
+        )
+        if not traced and not np.isfinite(np.asarray(out)[:length]).all():
+            raise ValueError(
+                "synthesize_texton: normal matrix not positive definite or non-finite states"
+                " (non-finite or singular texton parameters?)"
+            )
+    out = cut_frames(out, length)
     check_finite_output(out, texton, "synthesize_texton")
     return out
+
+
+def _pad_mask(mask: Array, rows: int) -> Array:
+    """A held mask ``(l,)`` padded with ``False`` to ``rows`` (on the host when concrete)."""
+    try:
+        m = np.asarray(mask)
+    except jax.errors.TracerArrayConversionError:
+        return jnp.pad(mask, (0, rows - mask.shape[0]))
+    return jax.device_put(np.pad(m, (0, rows - m.shape[0])))
+
+
+@eqx.filter_jit
+def _process_draws(
+    key: Array, process: InnovationProcess, shape: tuple[int, int], rows: int, tex: Texton
+) -> Array:
+    v = draw_innovations(key, process, shape, tex.mu.dtype, tex.dof)
+    return jnp.pad(v, ((0, rows - shape[0]), (0, 0)))
 
 
 def draw_noise(
@@ -201,7 +254,9 @@ def draw_noise(
 # --------------------------------------------------------------------------------------------
 
 
-def _noise_driven(tex: Texton, v: Array, start: Array) -> Array:
+def _noise_driven(tex: Texton, v: Array, start: Array, n_valid: Array | None = None) -> Array:
+    """``(l, D)`` from the recursion; ``n_valid``: ``v`` pads a shape bucket, and the states
+    of the frames from ``n_valid`` on are zero (no overflow past the segment)."""
     dt = tex.mu.dtype
     x01 = (start.astype(dt) - tex.mu) @ tex.C
 
@@ -210,19 +265,27 @@ def _noise_driven(tex: Texton, v: Array, start: Array) -> Array:
         x = tex.A1 @ xm1 + tex.A2 @ xm2 + tex.d + tex.B @ vj
         return (x, xm1), x
 
-    _, rest = lax.scan(step, (x01[1], x01[0]), v)
+    def masked(carry: tuple[Array, Array], inp: tuple[Array, Array]) -> Any:
+        vj, on = inp
+        (x, xm1), _ = step(carry, vj)
+        x = jnp.where(on, x, 0.0)
+        return (x, xm1), x
+
+    if n_valid is None:
+        _, rest = lax.scan(step, (x01[1], x01[0]), v)
+    else:
+        on = jnp.arange(2, v.shape[0] + 2) < n_valid
+        _, rest = lax.scan(masked, (x01[1], x01[0]), (v, on))
     states = jnp.concatenate([x01, rest], axis=0)
     return tex.mu + states @ tex.C.T
 
 
 def _noise_driven_key(
-    tex: Texton,
-    key: Array | None,
-    length: int,
-    start: Array,
-    process: InnovationProcess | None = None,
+    tex: Texton, key: Array | None, v: Array | None, n_valid: Array, rows: int, start: Array
 ) -> Array:
-    return _noise_driven(tex, draw_noise(tex, key, length, process), start)
+    if v is None:
+        v = bucket_noise(tex, key, n_valid, rows)
+    return _noise_driven(tex, v, start, n_valid)
 
 
 _noise_driven_key_jit = eqx.filter_jit(_noise_driven_key)
@@ -236,6 +299,8 @@ def constrained_texton(
     fixed: tuple[Array, Array] | None,
     weighting: str,
     check: bool = True,
+    n_valid: Array | None = None,
+    bridge: bool = True,
 ) -> Array:
     """Constrained synthesis by perturb-and-MAP with the equation noise ``v`` ``(l−2, k)``.
 
@@ -250,12 +315,24 @@ def constrained_texton(
     odd length padded with one held frame). Under ``vmap`` over ``v`` alone (many samples of
     one texton) the factorisations and propagators are shared and the samples become the
     rows of GEMMs. Returns ``(l, D)``: one GEMM ``[x, 1] [Cᵀ; μ]``.
+
+    ``n_valid`` (traced): a segment of ``n_valid`` frames in a shape bucket of ``l`` rows
+    (design §11); ``fixed`` is then ``(l,)`` (its padding free) and ``bridge`` (static) says
+    whether the segment may take the bridge (``n_valid ≥ 6``, no edits). The end pair sits at
+    rows ``n_valid − 2, n_valid − 1`` and the rows after it are held there (banded) or zero
+    (bridge, open tail), so no free state follows the segment and the solution of its frames
+    is that of the segment alone.
     """
     length = v.shape[0] + 2
     dt = tex.mu.dtype
     w = v.astype(dt) @ tex.B.T  # the noise in state units, w_j = B v_j (the one reader of v)
-    if end is None or fixed is not None or length < 6:
+    short = length < 6 if n_valid is None else not bridge
+    if end is None or fixed is not None or short:
+        if n_valid is not None and end is not None:  # the end pair at its rows of the bucket
+            fixed, end = held_end(length, n_valid, end, fixed), None
         eqs = constrained_equations(tex, length, w, start, end, fixed, weighting)
+        if n_valid is not None and eqs.tail is not None:  # an open tail stops at the segment
+            eqs = eqx.tree_at(lambda e: e.tail, eqs, eqs.tail & (jnp.arange(length) < n_valid))
         return observe(tex, *solve_constrained(tex, eqs, w), check=check)
     proj = lambda y: (y.astype(dt) - tex.mu) @ tex.C
     x01, xe = proj(start), proj(end)
@@ -263,16 +340,21 @@ def constrained_texton(
     # the dynamics alone, so unbatched under vmap over keys or poses); an amplifying texton
     # enters the bridge as A1 = A2 = 0, so that its unused result stays finite (for
     # derivatives under a batched lax.cond too), and is solved banded
-    usable = bridge_usable(tex.A1, tex.A2, length - 4)
+    free = length - 4 if n_valid is None else n_valid - 4
+    usable = bridge_usable(tex.A1, tex.A2, free, length - 4)
     safe = eqx.tree_at(
         lambda t: (t.A1, t.A2),
         tex,
         (jnp.where(usable, tex.A1, 0.0), jnp.where(usable, tex.A2, 0.0)),
     )
-    x, ok = solve_bridge(safe, w, x01, xe, weighting)
+    x, ok = solve_bridge(safe, w, x01, xe, weighting, n_valid)
 
     def banded(_: Any) -> tuple[Array, Array]:
-        eqs = constrained_equations(tex, length, w, start, end, None, weighting)
+        if n_valid is None:
+            eqs = constrained_equations(tex, length, w, start, end, None, weighting)
+        else:
+            held = held_end(length, n_valid, end, None)
+            eqs = constrained_equations(tex, length, w, start, None, held, weighting)
         return solve_constrained(tex, eqs, w)
 
     x, ok = lax.cond(usable, lambda _: (x, ok), banded, None)
@@ -282,15 +364,19 @@ def constrained_texton(
 def _constrained_key(
     tex: Texton,
     key: Array | None,
-    length: int,
+    v: Array | None,
+    n_valid: Array,
+    rows: int,
     start: Array,
     end: Array | None,
     fixed: tuple[Array, Array] | None,
     weighting: str,
-    process: InnovationProcess | None = None,
+    bridge: bool,
+    check: bool,
 ) -> Array:
-    v = draw_noise(tex, key, length, process)
-    return constrained_texton(tex, v, start, end, fixed, weighting)
+    if v is None:
+        v = bucket_noise(tex, key, n_valid, rows)
+    return constrained_texton(tex, v, start, end, fixed, weighting, check, n_valid, bridge)
 
 
 _constrained_key_jit = eqx.filter_jit(_constrained_key)
