@@ -147,7 +147,18 @@ def solve_edit_gn(
     if np.shape(cons.vel_joints)[-1]:
         raise ValueError("the banded Gauss-Newton solver does not take velocity targets")
     prob = problem(
-        fm, tx, seg, Y0, start_position, start_heading, cons, weights, True, keep, n_valid
+        fm,
+        tx,
+        seg,
+        Y0,
+        start_position,
+        start_heading,
+        cons,
+        weights,
+        True,
+        keep,
+        n_valid,
+        whiten=False,
     )
     w, dt = prob.w, Y0.dtype
     T, D = Y0.shape

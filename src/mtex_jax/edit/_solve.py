@@ -151,7 +151,7 @@ class _Problem(eqx.Module):
     fm: FeatureMap
     tx: WhitenedTextons
     seg: FrameSegments
-    wh: Whitening
+    wh: Whitening | None  # None for the banded Gauss–Newton solver, which does not whiten
     Y0: Array
     r0: tuple[Array, Array, Array]
     sp: Array
@@ -165,6 +165,8 @@ class _Problem(eqx.Module):
     keep: tuple[int, ...] = eqx.field(static=True)
 
     def edited(self, u: Array) -> Array:
+        if self.wh is None:
+            raise ValueError("this edit problem was built without its whitening")
         Y = self.Y0 + self.wh.displacement(u)
         return jnp.where(self.cons.pose_mask[:, None], self.cons.poses, Y)  # held: exact
 
@@ -255,12 +257,14 @@ def sub_skeleton(skeleton: Skeleton, joints: tuple[int, ...]) -> tuple[Skeleton,
 
 
 def problem(
-    fm, tx, seg, Y0, sp, sh, cons, w, relative: bool, keep, n_valid: Any = None
+    fm, tx, seg, Y0, sp, sh, cons, w, relative: bool, keep, n_valid: Any = None, whiten=True
 ) -> _Problem:
     """The residual form of one edit (whitening factored, plant heights resolved).
 
     ``n_valid``: the motion's own frames when ``Y0`` is padded to a shape bucket (the padding
     frames must be held by ``cons.pose_mask``; their prior and floor terms are left out).
+    ``whiten=False``: no whitening (the banded Gauss–Newton solver has its own normal
+    equations; leaving it out keeps a block Cholesky out of its program).
     """
     dtype = Y0.dtype
     T, D = Y0.shape
@@ -274,19 +278,21 @@ def problem(
         (linear,) = pull(r0)
         linear = (w.prior**2) * linear
         r0 = (jnp.zeros_like(r0[0]), jnp.zeros_like(r0[1]), jnp.zeros_like(r0[2]))
-    bands = tuple(
-        (w.prior**2) * a + (w.smooth**2) * b
-        for a, b in zip(
-            prior_hessian(tx, seg, dtype, n_valid),
-            smoothness_hessian(T, D, dtype, n_valid),
-            strict=True,
+    wh = None
+    if whiten:
+        bands = tuple(
+            (w.prior**2) * a + (w.smooth**2) * b
+            for a, b in zip(
+                prior_hessian(tx, seg, dtype, n_valid),
+                smoothness_hessian(T, D, dtype, n_valid),
+                strict=True,
+            )
         )
-    )
-    held = cons.pose_mask
-    delta = jnp.where(held[:, None], cons.poses.astype(dtype) - Y0, 0.0)
-    is_root = np.array([n.startswith("root.d") for n in fm.active_names])  # dh0, dh1, dyaw
-    anchor = jnp.where(jnp.asarray(is_root), jnp.hypot(w.anchor, w.root), w.anchor)
-    wh = whitening_each(bands, anchor, held, delta, linear)
+        held = cons.pose_mask
+        delta = jnp.where(held[:, None], cons.poses.astype(dtype) - Y0, 0.0)
+        is_root = np.array([n.startswith("root.d") for n in fm.active_names])  # dh0, dh1, dyaw
+        anchor = jnp.where(jnp.asarray(is_root), jnp.hypot(w.anchor, w.root), w.anchor)
+        wh = whitening_each(bands, anchor, held, delta, linear)
     zero = jnp.zeros((), dtype)
     prob = _Problem(fm, tx, seg, wh, Y0, r0, sp, sh, cons, zero, zero, w, n_valid, sub, keep)
     P0, root0 = prob.kinematics(Y0)
