@@ -28,6 +28,16 @@ CMU_DIR = SHARED / "data" / "cmu-salsa"
 DEEPMIMIC_DIR = SHARED / "data" / "deepmimic"
 
 
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` with the longest test files first (tests/xdist_order.py)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist_order import LongestFirst
+
+    return LongestFirst(config, log)
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_code():
     """Drop JAX's compiled executables after every test module.

@@ -8,13 +8,16 @@ import subprocess
 import sys
 import textwrap
 
+from jax_cache import child_env
+
 
 def run_with_cpu_devices(
     script: str, marker: str, *, n: int = 2, timeout: int = 900, **env: str
 ) -> str:
-    """Run ``script`` (dedented) with ``n`` CPU devices and ``TESTS_DIR`` plus ``env`` set;
+    """Run ``script`` (dedented) with ``n`` CPU devices and ``TESTS_DIR`` plus ``env`` set
+    (and the persistent compilation cache of this process, :mod:`jax_cache`);
     assert that it exits 0 and prints ``marker``; return its standard output."""
-    full = dict(os.environ, **env)
+    full = child_env(**env)  # with this process's compilation cache
     full["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={n}"
     full["TESTS_DIR"] = os.path.dirname(__file__)
     r = subprocess.run(

@@ -2,7 +2,8 @@
 and its shipped salsa clips (no path outside the repository).
 
 Slow: each notebook learns a model on the 14 clips. Needs the ``notebooks`` extra
-(``pip install -e ".[notebooks]"``); skipped without it.
+(``pip install -e ".[notebooks]"``); skipped without it. The kernels start with the test
+process's persistent compilation cache (set through the environment, not in the notebooks).
 """
 
 import json
@@ -10,6 +11,8 @@ import shutil
 from pathlib import Path
 
 import pytest
+
+from jax_cache import cache_env
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
@@ -31,7 +34,7 @@ def test_notebook_reads_shipped_data(path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
-def test_notebook_executes(path, tmp_path):
+def test_notebook_executes(path, tmp_path, monkeypatch):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
     pytest.importorskip("ipykernel")
@@ -39,6 +42,8 @@ def test_notebook_executes(path, tmp_path):
     work = tmp_path / path.name
     shutil.copy(path, work)
     nb = nbformat.read(work, as_version=4)
+    for name, value in cache_env().items():  # the kernel inherits this environment
+        monkeypatch.setenv(name, value)
     client = nbclient.NotebookClient(
         nb,
         timeout=3600,

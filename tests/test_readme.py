@@ -5,18 +5,21 @@ statically here (they compile; every name they use is defined by them or is a bu
 ``mj.…``, ``E.…`` and ``metrics.…`` attribute exists) and executed, in order, in a fresh
 Python process in an empty folder, as a new user would paste them (slow: it learns a texture
 on the 10 training clips with the default ``LearnConfig`` and compiles every step). The run uses
-the shipped clips only.
+the shipped clips only, and the test process's persistent compilation cache (set through the
+environment, not in the tour's code), so that a second run on the same machine skips most
+compilations.
 """
 
 import ast
 import builtins
-import os
 import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from jax_cache import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -103,8 +106,7 @@ def test_tour_runs(tmp_path):
     code = "\n".join(_tour_blocks())
     script = tmp_path / "tour.py"
     script.write_text(code, encoding="utf-8")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
-    env["MPLBACKEND"] = "Agg"
+    env = {k: v for k, v in child_env(MPLBACKEND="Agg").items() if not k.startswith("PYTEST")}
     proc = subprocess.run(
         [sys.executable, str(script)],
         cwd=tmp_path,

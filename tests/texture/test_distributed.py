@@ -9,7 +9,6 @@ durations while this process learns on all four clips; the workers are killed af
 
 from __future__ import annotations
 
-import os
 import socket
 import subprocess
 import sys
@@ -20,6 +19,7 @@ import jax
 import numpy as np
 import pytest
 
+from jax_cache import child_env
 from mtex_jax.io import load_salsa
 from mtex_jax.texture import LearnConfig, learn, learn_distributed
 
@@ -105,7 +105,7 @@ def test_two_processes_equal_one(tmp_path, extra, tol):
     config = {**CONFIG, **extra}
     script = f"CLIPS = {CLIPS!r}\nFRAMES = {FRAMES}\nCONFIG = {config!r}\n" + WORKER
     port = _free_port()
-    env = {**os.environ, "XLA_FLAGS": "", "JAX_PLATFORMS": "cpu"}
+    env = child_env(XLA_FLAGS="", JAX_PLATFORMS="cpu")  # and the compilation cache
     procs, logs = [], []
     for pid in range(2):
         log = open(tmp_path / f"worker{pid}.log", "w")  # closed below

@@ -33,7 +33,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, ClassVar
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
@@ -96,11 +95,30 @@ class TiedObservation(FullObservation):
         ds: DynamicsStats,
         opts: SolveOptions,
     ) -> Texton:
-        tex = jax.lax.map(lambda a: fit_one(a[0], a[1]), (sub, ds))
+        """Every parameter but the subspace's (``μ``, ``C``, ``σ²``) from the tied closed
+        form; no untied fit is computed. ``fit_one`` is only traced abstractly, for the class
+        of texton it builds (the texton module imports this registry)."""
+        one = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), (sub, ds))
+        texton_type = type(jax.eval_shape(fit_one, *one))
         A1, A2, d, B = tied_dynamics(sub.C, ds, opts.ridge, opts.q_floor, opts.rho_max)
         m0, S0 = tied_initial_state(sub.C, ds, opts.q_floor)
-        return eqx.tree_at(
-            lambda t: (t.A1, t.A2, t.d, t.B, t.m0, t.S0), tex, (A1, A2, d, B, m0, S0)
+        k, D = sub.C.shape[-1], sub.C.shape[-2]
+        res_a, res_s2 = jax.vmap(lambda s, s2: self.fit_residual(s, k, D, s2, opts))(ds, sub.sigma2)
+        dtype = ds.sum_zz.dtype
+        return texton_type(
+            mu=sub.mu.astype(dtype),
+            C=sub.C.astype(dtype),
+            A1=A1,
+            A2=A2,
+            d=d,
+            B=B,
+            sigma2=sub.sigma2.astype(dtype),
+            m0=m0,
+            S0=S0,
+            res_a=res_a,
+            res_s2=res_s2,
+            observation=opts.observation,
+            dof=opts.dof,
         )
 
 
