@@ -7,23 +7,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_linalg import random_band  # the random SPD band of the tridiagonal tests
 
 from mtex_jax.linalg import BlockPentaCholesky, block_penta_cholesky, block_penta_solve
-
-
-def random_band(rng: np.random.Generator, n: int, k: int, ridge: float = 0.1):
-    """Random SPD matrix of block bandwidth 2 (``Σ_j G_jᵀ G_j + ridge·I``, each ``G_j`` on
-    frames ``j−2 … j``): dense, and its diagonal, first and second sub-diagonal blocks."""
-    A = ridge * np.eye(n * k)
-    for j in range(n):
-        lo = max(j - 2, 0)
-        G = rng.standard_normal((k, (j + 1 - lo) * k))
-        A[lo * k : (j + 1) * k, lo * k : (j + 1) * k] += G.T @ G
-    blk = lambda i, j: A[i * k : (i + 1) * k, j * k : (j + 1) * k]
-    diag = np.array([blk(i, i) for i in range(n)]).reshape(n, k, k)
-    off1 = np.array([blk(i + 1, i) for i in range(n - 1)]).reshape(n - 1, k, k)
-    off2 = np.array([blk(i + 2, i) for i in range(n - 2)]).reshape(max(n - 2, 0), k, k)
-    return A, diag, off1, off2
 
 
 def lower_blocks(diag, off1, off2):
