@@ -347,19 +347,21 @@ def solve_banded(
         def body(s):
             z, c, k, done, ok, fac, fresh = s
             running = (k < max_steps) & ~done
+            zero = jnp.zeros((), dt)
             if chord:
                 full = fresh
-                g = grad_of(z, shift) * keep_rows
 
                 def full_branch(_):
-                    return gn_step(z, shift, running & full)
+                    return (*gn_step(z, shift, running & full), zero)
 
                 def chord_branch(_):
-                    return chord_step(z, g, fac), fac
+                    g = grad_of(z, shift) * keep_rows
+                    z_c = chord_step(z, g, fac)
+                    return z_c, fac, -0.5 * jnp.sum((z_c - z) * g)  # the model's ½ gᵀB₀⁻¹g
 
-                z_gn, fac = lax.cond(full, full_branch, chord_branch, None)
+                z_gn, fac, pred = lax.cond(full, full_branch, chord_branch, None)
             else:
-                full, g = jnp.asarray(True), jnp.zeros_like(z)
+                full, pred = jnp.asarray(True), zero
                 z_gn, fac = gn_step(z, shift, running)
             dz = z_gn - z
 
@@ -379,9 +381,8 @@ def solve_banded(
             step = jnp.max(jnp.abs(z_new - z))
             stop = (c - c_new <= rtol * jnp.maximum(c, 1e-30)) | (step <= xtol)
             # a chord step that needed halving or gained less than half of what its model
-            # promised (½ gᵀB⁻¹g) is poor: the next step refactors, and a poor chord step never
-            # ends the round
-            pred = -0.5 * jnp.sum(dz * g)
+            # promised (pred) is poor: the next step refactors, and a poor chord step never
+            # ends the round (for a fresh step ``poor`` is not used)
             poor = (i > 0) | ~better | (c - c_new < 0.5 * pred)
             done = stop & (full | ~poor)
             return z_new, c_new, k + 1, done, ok & fac.ok, fac, ~full & poor
@@ -426,10 +427,10 @@ def _normal_solve(H0, H1, H2, anchor, held, delta, linear, active):
 
     Under ``vmap`` the motions are factorised one after the other (``lax.map``, with
     ``lax.cond`` on ``active``): a batched block Cholesky hands LAPACK a batch of triangular
-    solves, which XLA's CPU backend runs orders of magnitude slower (a ``108 × 108`` solve
-    for the inverse of a pivot block: 0.09 ms alone, 21 ms in a batch of 4; a batch of 4
-    motions of 600 frames did not finish in 5 minutes, one takes 0.13 s); everything else in
-    the solve stays batched."""
+    solves, which XLA's CPU backend runs orders of magnitude slower (measured with the
+    frame-pair factor's ``108 × 108`` pivot blocks: an inverse 0.09 ms alone, 21 ms in a
+    batch of 4; a batch of 4 motions of 600 frames did not finish in 5 minutes, one took
+    0.13 s); everything else in the solve stays batched."""
     del active
     D = H0.shape[-1]
     dt = H0.dtype
