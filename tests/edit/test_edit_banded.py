@@ -18,7 +18,9 @@ import mtex_jax as mj
 from cpu_devices import run_with_cpu_devices
 from mtex_jax import edit as E
 from mtex_jax.edit._banded import (
+    _step_factor,
     channel_colouring,
+    frame_columns,
     frame_jacobians,
     kept_positions,
     root_free_channels,
@@ -99,6 +101,58 @@ def test_frame_jacobians_are_the_diagonal_blocks_of_the_dense_jacobian(tex, syn)
                 assert np.abs(blk).max() < 1e-12
     assert np.abs(np.asarray(J)[..., ~f]).max() == 0.0
     check_grads(fn, (Y,), order=1, modes=("fwd", "rev"), eps=1e-6)
+    # the rows a Gauss–Newton step gathers equal the dense blocks' rows
+    fc = frame_columns(fn, Y, free, col)
+    frames, slots = jnp.array([0, 3, 5, 3]), jnp.array([0, 1, 2, 2])
+    Jd = np.asarray(J)
+    np.testing.assert_allclose(
+        np.asarray(fc.rows(frames, slots)), Jd[np.asarray(frames), np.asarray(slots)], atol=1e-12
+    )
+    np.testing.assert_allclose(np.asarray(fc.axis(1)), Jd[:, :, 1, :], atol=1e-12)
+
+
+def _dense_penta(A0, A1, A2):
+    T, D, _ = A0.shape
+    M = np.zeros((T * D, T * D))
+    for t in range(T):
+        M[t * D : (t + 1) * D, t * D : (t + 1) * D] = A0[t]
+        for k, A in ((1, A1), (2, A2)):
+            if t >= k:
+                M[t * D : (t + 1) * D, (t - k) * D : (t - k + 1) * D] = A[t]
+                M[(t - k) * D : (t - k + 1) * D, t * D : (t + 1) * D] = A[t].T
+    return M
+
+
+def test_single_precision_step_factor_and_its_double_precision_fallback():
+    from mtex_jax.linalg import block_penta_solve
+
+    rng = np.random.default_rng(3)
+    T, D = 7, 4
+    B = rng.standard_normal((T, D, D))
+    A0 = np.einsum("tij,tkj->tik", B, B) + 6.0 * np.eye(D)
+    A1, A2 = 0.5 * rng.standard_normal((T, D, D)), 0.3 * rng.standard_normal((T, D, D))
+    M = _dense_penta(A0, A1, A2)
+    r = rng.standard_normal((T, D))
+    ref = np.linalg.solve(M, r.reshape(-1)).reshape(T, D)
+    fac = _step_factor(*(jnp.asarray(a) for a in (A0, A1, A2)))
+    assert bool(fac.ok) and fac.Linv.dtype == jnp.float64
+    x = np.asarray(block_penta_solve(fac, jnp.asarray(r)))
+    # single precision: a step direction, not an exact solve
+    assert 1e-12 < np.abs(x - ref).max() / np.abs(ref).max() < 1e-5
+    # a pivot that single precision rounds to a singular block (eigenvalue 1e-10 of 2):
+    # the factor is recomputed in double precision and solves exactly
+    A0[2, :2, :2] = [[1.0, 1.0 - 1e-10], [1.0 - 1e-10, 1.0]]
+    A0[2, 2:, :2] = A0[2, :2, 2:] = 0.0
+    A1[2] = A1[3] = A2[2] = A2[3] = A2[4] = 0.0  # block 2 decoupled
+    M = _dense_penta(A0, A1, A2)
+    assert np.all(np.linalg.eigvalsh(M) > 0)
+    ref = np.linalg.solve(M, r.reshape(-1)).reshape(T, D)
+    fac = _step_factor(*(jnp.asarray(a) for a in (A0, A1, A2)))
+    assert bool(fac.ok)
+    x = np.asarray(block_penta_solve(fac, jnp.asarray(r)))
+    np.testing.assert_allclose(x, ref, rtol=1e-6, atol=1e-8 * np.abs(ref).max())
+    lo = _step_factor(*(jnp.asarray(a, jnp.float32) for a in (A0, A1, A2)))
+    assert not bool(lo.ok)  # the same matrix in single precision fails: the case is real
 
 
 @pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after

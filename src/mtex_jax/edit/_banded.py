@@ -23,14 +23,21 @@ work: a chord step that has to be halved, or that gains less than half of what i
 promised (``½ ∇fᵀ B₀⁻¹ ∇f``), is followed by a fresh Gauss–Newton step. An edit's few point
 targets change ``B`` little from step to step, so a 20 s edit takes two factorisations
 instead of about ten; a clean's plants and floor change their active sets between steps, and
-clean takes fresh steps only.
+clean takes fresh steps only. The loop is two nested loops: a fresh step, then the chord
+steps that use its factor as a loop invariant (the 90 MB factor of a 1,280-frame edit is
+never part of a loop's carry); the multiplier rounds run inside the same loops.
 
 The iteration is damped by backtracking (a step that raises the cost is halved, up to four
 times). It stops when the cost changes by less than ``rtol`` relatively or the step is below
 ``xtol`` (z-scored units), and not on a poor chord step; ``converged`` reports exactly that.
 Point targets are met by
 multiplier rounds (their target is shifted by the remaining error between rounds), as in the
-Levenberg–Marquardt solver. Everything is traced, so the solve batches with ``vmap``.
+Levenberg–Marquardt solver; rounds before the last stop at a looser ``100·rtol``.
+
+The per-frame Jacobians are taken as Jacobian-vector products of one linearisation, one
+tangent after the other (:func:`frame_columns`), and only the rows a step needs (the point
+targets' and the height of every joint) are gathered from them. Everything is traced, so
+the solve batches with ``vmap``.
 """
 
 from __future__ import annotations
@@ -51,8 +58,10 @@ from ._whiten import band_matvec
 __all__ = [
     "BandedSolve",
     "Colouring",
+    "FrameColumns",
     "PointTargets",
     "channel_colouring",
+    "frame_columns",
     "frame_jacobians",
     "kept_positions",
     "root_free_channels",
@@ -177,6 +186,60 @@ def channel_colouring(fm: FeatureMap, keep: tuple[int, ...]) -> Colouring:
     )
 
 
+class FrameColumns(eqx.Module):
+    """Joint positions and their per-frame Jacobian columns, as tangents (module notes).
+
+    The Jacobian of joint ``k``'s position at frame ``t`` with respect to channel ``d`` is
+    ``cols[colour[d], t, k] · support[d, k]``; :meth:`rows` gathers the rows a step needs
+    without forming the whole ``(T, K, 3, D)`` array.
+
+    Attributes:
+        P: ``(T, K, 3)`` the positions.
+        cols: ``(C, T, K, 3)`` one Jacobian-vector product per tangent.
+        colour: ``(D,)`` the tangent of each channel (static).
+        support: ``(D, K)`` 1 where channel ``d`` moves joint ``k`` and is free.
+    """
+
+    P: Float[Array, "T K 3"]
+    cols: Float[Array, "C T K 3"]
+    colour: tuple[int, ...] = eqx.field(static=True)
+    support: Float[Array, "D K"]
+
+    def rows(self, frame: Array, slot: Array) -> Array:
+        """``(P, 3, D)`` the Jacobians of the positions of joints ``slot`` at ``frame``."""
+        c = self.cols[:, frame, slot][np.asarray(self.colour)]  # (D, P, 3)
+        return jnp.moveaxis(c * self.support[:, slot][..., None], 0, -1)
+
+    def axis(self, a: int) -> Array:
+        """``(T, K, D)`` the Jacobians of every joint's coordinate ``a``."""
+        c = self.cols[..., a][np.asarray(self.colour)]  # (D, T, K)
+        return jnp.moveaxis(c * self.support[:, None, :], 0, -1)
+
+
+def frame_columns(fn, Y: Array, free_ch: Array, colouring: Colouring | None = None) -> FrameColumns:
+    """``fn(Y)`` ``(T, K, 3)`` and its Jacobian-vector products, one per colour.
+
+    Valid when frames do not interact through the free channels (module notes). With a
+    ``colouring`` one product serves every channel of a colour; without, one per channel.
+    The products run one after the other on one linearisation (``lax.map``): measured on
+    a 1,280-frame edit, ``vmap`` over the 21 tangents took 1.7 times as long.
+    """
+    D = Y.shape[1]
+    if colouring is None:
+        colour = tuple(range(D))
+        n_col = D
+        support = jnp.broadcast_to(free_ch[:, None], (D, 1))
+    else:
+        colour, n_col = colouring.colour, colouring.n_colours
+        support = jnp.asarray(np.asarray(colouring.support), Y.dtype) * free_ch[:, None]
+    groups = jnp.asarray(np.eye(n_col)[np.asarray(colour)].T, Y.dtype)  # (C, D)
+    P, lin = jax.linearize(fn, Y)
+    cols = lax.map(lambda e: lin(jnp.broadcast_to(e * free_ch, Y.shape)), groups)
+    if colouring is None:
+        support = jnp.broadcast_to(support, (D, P.shape[1]))
+    return FrameColumns(P=P, cols=cols, colour=tuple(int(c) for c in colour), support=support)
+
+
 def frame_jacobians(
     fn, Y: Array, free_ch: Array, colouring: Colouring | None = None
 ) -> tuple[Array, Array]:
@@ -185,21 +248,12 @@ def frame_jacobians(
 
     Valid when frames do not interact through the free channels (module notes). With a
     ``colouring`` one Jacobian-vector product serves every channel of a colour, and each
-    channel's column is its colour's tangent restricted to the joints it moves.
+    channel's column is its colour's tangent restricted to the joints it moves
+    (:func:`frame_columns`).
     """
-    D = Y.shape[1]
-    P, lin = jax.linearize(fn, Y)
-    eye = jnp.eye(D, dtype=Y.dtype) * free_ch[None, :]
-    if colouring is None:
-        cols = jax.vmap(lambda e: lin(jnp.broadcast_to(e, Y.shape)))(eye)  # (D, T, K, 3)
-        return P, jnp.moveaxis(cols, 0, -1)
-    colour = np.asarray(colouring.colour)
-    groups = jnp.asarray(np.eye(colouring.n_colours)[colour].T, Y.dtype)  # (C, D)
-    tang = groups * free_ch[None, :]
-    cols = jax.vmap(lambda e: lin(jnp.broadcast_to(e, Y.shape)))(tang)  # (C, T, K, 3)
-    sup = jnp.asarray(np.asarray(colouring.support), Y.dtype) * free_ch[:, None]  # (D, K)
-    J = cols[colour] * sup[:, None, :, None]  # (D, T, K, 3)
-    return P, jnp.moveaxis(J, 0, -1)
+    fc = frame_columns(fn, Y, free_ch, colouring)
+    J = fc.cols[np.asarray(fc.colour)] * fc.support[:, None, :, None]  # (D, T, K, 3)
+    return fc.P, jnp.moveaxis(J, 0, -1)
 
 
 def _masked_bands(bands, anchor: Array, free_ch: Array):
@@ -258,7 +312,10 @@ def solve_banded(
             the offset's smoothness stops there. ``None``: all ``T``.
         rounds: multiplier rounds (``≥ 1``).
         max_steps: Gauss–Newton steps per round.
-        rtol: relative change of the cost below which a round stops.
+        rtol: relative change of the cost below which the last round stops; the rounds
+            before it stop at ``100·rtol`` (their targets are shifted again: on four
+            benchmark edits 62 steps instead of 71, every target met, position errors within
+            0.12 mm of those of tight early rounds).
         xtol: largest step (z-scored units) below which a round stops.
         colouring: channels that share a Jacobian-vector product (:func:`channel_colouring`);
             ``None``: one product per channel.
@@ -306,13 +363,13 @@ def solve_banded(
         return 0.5 * (hz + jnp.sum(w2 * r * r) + jnp.sum((lw * low) ** 2))
 
     def gn_step(z: Array, shift: Array, active: Array):
-        P, J = frame_jacobians(fn, edited(z), free_ch, colouring)
-        P = P + offset(z)
-        if move_root is not None:
+        fc = frame_columns(fn, edited(z), free_ch, colouring)
+        P = fc.P + offset(z)
+        Jp = fc.rows(points.frame, points.slot)  # (P, 3, D)
+        if move_root is not None:  # the offset moves every joint of its frame alike
             (c0, c1), (h0, h1) = move_root
-            J = J.at[:, :, h0, c0].set(1.0).at[:, :, h1, c1].set(1.0)
+            Jp = Jp.at[:, h0, c0].set(1.0).at[:, h1, c1].set(1.0)
         r = point_res(P, shift)
-        Jp = J[points.frame, points.slot]  # (P, 3, D)
         zp = z[points.frame]
         # Σ Jᵀ W² J and Σ Jᵀ W² (J z − r), scattered to the frames
         A_p = jnp.einsum("pcd,pc,pce->pde", Jp, w2, Jp)
@@ -321,7 +378,7 @@ def solve_banded(
         b = jnp.zeros((T, D), dt).at[points.frame].add(b_p)
         h = P[..., up]
         act = (h < lower).astype(dt)  # (T, K): one-sided, the active set at z
-        Ju = J[:, :, up, :] * (lw * act)[..., None]  # (T, K, D)
+        Ju = fc.axis(up) * (lw * act)[..., None]  # (T, K, D)
         ru = lw * act * (h - jnp.where(act > 0, lower, h))
         A = A + jnp.einsum("tkd,tke->tde", Ju, Ju)
         b = b + jnp.einsum("tkd,tk->td", Ju, jnp.einsum("tke,te->tk", Ju, z) - ru)
@@ -332,76 +389,111 @@ def solve_banded(
 
     keep_rows = (~held)[:, None].astype(dt) * var_ch[None, :]
     grad_of = jax.grad(cost_of)
+    early_rtol = 100.0 * rtol
 
-    def chord_step(z: Array, g: Array, fac: BlockPentaCholesky) -> Array:
-        """``z − B⁻¹ g`` with the factor of an earlier step's normal matrix ``B``."""
-        return z - block_penta_solve(fac, g) * keep_rows
+    def advance(s: _Iterate, z_try: Array, fac_ok: Array, pred: Array, full: bool) -> _Iterate:
+        """Take the step to ``z_try`` (halved while it does not lower the cost), test the
+        round's stop, and start the next multiplier round when this one ends."""
+        z, c = s.z, s.cost
+        dz = z_try - z
 
-    def one_round(carry, _):
-        z, shift, _conv, steps, fok, fac = carry
+        def worse(b):
+            _zt, ct, i = b
+            return ~((ct < c) & jnp.isfinite(ct)) & (i < 5)
 
-        def cond(s):
-            _z, _c, k, done, _ok, _fac, _fresh = s
-            return (k < max_steps) & ~done
+        def halve(b):
+            _zt, _ct, i = b
+            zt = z + (0.5 ** (i + 1)) * dz
+            return zt, cost_of(zt, s.shift), i + 1
 
-        def body(s):
-            z, c, k, done, ok, fac, fresh = s
-            running = (k < max_steps) & ~done
-            zero = jnp.zeros((), dt)
-            if chord:
-                full = fresh
+        zt, ct, i = lax.while_loop(worse, halve, (z_try, cost_of(z_try, s.shift), 0))
+        better = (ct < c) & jnp.isfinite(ct)
+        z_new, c_new = jnp.where(better, zt, z), jnp.where(better, ct, c)
+        step = jnp.max(jnp.abs(z_new - z))
+        # rounds before the last stop early: their targets are shifted again anyway
+        tol = jnp.where(s.round + 1 < rounds, early_rtol, rtol)
+        stop = (c - c_new <= tol * jnp.maximum(c, 1e-30)) | (step <= xtol)
+        # a chord step that needed halving or gained less than half of what its model
+        # promised (pred) is poor: the next step refactors, and a poor chord step never
+        # ends the round
+        poor = jnp.asarray(False) if full else (i > 0) | ~better | (c - c_new < 0.5 * pred)
+        done = stop & ~poor
+        k = s.k + 1
+        end = done | (k >= max_steps)
+        last = end & (s.round + 1 >= rounds)
+        new_round = end & ~last
 
-                def full_branch(_):
-                    return (*gn_step(z, shift, running & full), zero)
+        def next_round():  # the exact targets shifted by their remaining error
+            P = fn(edited(z_new)) + offset(z_new)
+            err = P[points.frame, points.slot] - points.target
+            shift = s.shift - jnp.where(points.exact[:, None], err, 0.0)
+            return shift, cost_of(z_new, shift)
 
-                def chord_branch(_):
-                    g = grad_of(z, shift) * keep_rows
-                    z_c = chord_step(z, g, fac)
-                    return z_c, fac, -0.5 * jnp.sum((z_c - z) * g)  # the model's ½ gᵀB₀⁻¹g
+        shift, c_next = lax.cond(new_round, next_round, lambda: (s.shift, c_new))
+        return _Iterate(
+            z=z_new,
+            shift=shift,
+            cost=c_next,
+            round=s.round + new_round.astype(jnp.int32),
+            k=jnp.where(end, 0, k),
+            steps=s.steps + 1,
+            converged=jnp.where(end, done, s.converged),
+            finished=last,
+            fresh=~end & poor,  # a round starts with a chord step (as it ends)
+            ok=s.ok & fac_ok,
+        )
 
-                z_gn, fac, pred = lax.cond(full, full_branch, chord_branch, None)
-            else:
-                full, pred = jnp.asarray(True), zero
-                z_gn, fac = gn_step(z, shift, running)
-            dz = z_gn - z
+    def fresh_then_chords(s: _Iterate) -> _Iterate:
+        """One fresh Gauss–Newton step, then chord steps with its factor while they work."""
+        z_gn, fac = gn_step(s.z, s.shift, ~s.finished)
+        s = advance(s, z_gn, fac.ok, jnp.zeros((), dt), full=True)
+        if not chord:
+            return s
 
-            def worse(b):
-                _zt, ct, i = b
-                return ~((ct < c) & jnp.isfinite(ct)) & (i < 5)
+        def chord_step(s: _Iterate) -> _Iterate:
+            # z − B₀⁻¹ g with the factor B₀ of the last fresh step (a loop invariant: the
+            # factor is not carried), and the model's promise ½ gᵀB₀⁻¹g
+            g = grad_of(s.z, s.shift) * keep_rows
+            z_c = s.z - block_penta_solve(fac, g) * keep_rows
+            return advance(s, z_c, fac.ok, -0.5 * jnp.sum((z_c - s.z) * g), full=False)
 
-            def halve(b):
-                _zt, _ct, i = b
-                zt = z + (0.5 ** (i + 1)) * dz
-                return zt, cost_of(zt, shift), i + 1
-
-            c_gn = cost_of(z_gn, shift)
-            zt, ct, i = lax.while_loop(worse, halve, (z_gn, c_gn, 0))
-            better = (ct < c) & jnp.isfinite(ct)
-            z_new, c_new = jnp.where(better, zt, z), jnp.where(better, ct, c)
-            step = jnp.max(jnp.abs(z_new - z))
-            stop = (c - c_new <= rtol * jnp.maximum(c, 1e-30)) | (step <= xtol)
-            # a chord step that needed halving or gained less than half of what its model
-            # promised (pred) is poor: the next step refactors, and a poor chord step never
-            # ends the round (for a fresh step ``poor`` is not used)
-            poor = (i > 0) | ~better | (c - c_new < 0.5 * pred)
-            done = stop & (full | ~poor)
-            return z_new, c_new, k + 1, done, ok & fac.ok, fac, ~full & poor
-
-        cost0 = cost_of(z, shift)
-        k0 = jnp.asarray(0, jnp.int32)
-        init = (z, cost0, k0, jnp.asarray(False), jnp.asarray(True), fac, steps == 0)
-        z, c, k, done, ok, fac, _f = lax.while_loop(cond, body, init)
-        P = fn(edited(z)) + offset(z)
-        err = P[points.frame, points.slot] - points.target
-        new_shift = shift - jnp.where(points.exact[:, None], err, 0.0)
-        return (z, new_shift, done, steps + k, fok & ok, fac), c
+        return lax.while_loop(lambda s: ~s.finished & ~s.fresh, chord_step, s)
 
     shift0 = jnp.zeros_like(points.target)
-    init = (jnp.zeros((T, D), dt), shift0, jnp.asarray(False), jnp.asarray(0, jnp.int32))
-    init = (*init, jnp.asarray(True), _no_factor(T, D, dt))
-    (z, _shift, conv, steps, fok, _fac), costs = lax.scan(one_round, init, None, length=rounds)
-    z = jnp.where(held[:, None], delta, z * var_ch)
-    return BandedSolve(z=z, converged=conv & fok, steps=steps, cost=costs[-1], factor_ok=fok)
+    z0 = jnp.zeros((T, D), dt)
+    i0 = jnp.asarray(0, jnp.int32)
+    init = _Iterate(
+        z=z0,
+        shift=shift0,
+        cost=cost_of(z0, shift0),
+        round=i0,
+        k=i0,
+        steps=i0,
+        converged=jnp.asarray(False),
+        finished=jnp.asarray(False),
+        fresh=jnp.asarray(True),
+        ok=jnp.asarray(True),
+    )
+    s = lax.while_loop(lambda s: ~s.finished, fresh_then_chords, init)
+    z = jnp.where(held[:, None], delta, s.z * var_ch)
+    return BandedSolve(
+        z=z, converged=s.converged & s.ok, steps=s.steps, cost=s.cost, factor_ok=s.ok
+    )
+
+
+class _Iterate(eqx.Module):
+    """The state of :func:`solve_banded`'s iteration (all rounds in one loop)."""
+
+    z: Array
+    shift: Array
+    cost: Array
+    round: Array
+    k: Array
+    steps: Array
+    converged: Array
+    finished: Array
+    fresh: Array
+    ok: Array
 
 
 def _no_factor(T: int, D: int, dt) -> BlockPentaCholesky:
@@ -439,9 +531,34 @@ def _normal_solve(H0, H1, H2, anchor, held, delta, linear, active):
     A0 = jnp.where(held[:, None, None], jnp.eye(D, dtype=dt), sym(H0) + jnp.diag(anchor**2))
     A1 = H1 * (f * jnp.concatenate([jnp.zeros((1,), dt), f[:-1]]))[:, None, None]
     A2 = H2 * (f * jnp.concatenate([jnp.zeros((2,), dt), f[:-2]]))[:, None, None]
-    fac = block_penta_cholesky(A0, A1, A2)
+    fac = _step_factor(A0, A1, A2)
     z_star = block_penta_solve(fac, -b * f[:, None]) * f[:, None]
     return z_star + delta, fac
+
+
+def _step_factor(A0: Array, A1: Array, A2: Array) -> BlockPentaCholesky:
+    """The normal matrix's factor, computed in single precision for a double-precision solve.
+
+    The factor only chooses the step's direction: each step is accepted on the cost, computed
+    in the problem's precision, and the iteration stops where the gradient does, so an
+    inexact factor changes the path, not the solution (an inexact Gauss–Newton step). In
+    single precision the factorisation takes about 35 % less time (measured, 1,280 frames of
+    54 channels). If it fails (a matrix too ill-conditioned for single precision), the
+    factorisation is done again in the problem's precision."""
+    dt = A0.dtype
+    if dt != jnp.float64:
+        return block_penta_cholesky(A0, A1, A2)
+    lo = block_penta_cholesky(
+        A0.astype(jnp.float32), A1.astype(jnp.float32), A2.astype(jnp.float32)
+    )
+
+    def up(f: BlockPentaCholesky) -> BlockPentaCholesky:
+        cast = lambda a: a.astype(dt)
+        return BlockPentaCholesky(
+            Linv=cast(f.Linv), L1=cast(f.L1), L2=cast(f.L2), ok=f.ok, first_bad=f.first_bad
+        )
+
+    return lax.cond(lo.ok, lambda: up(lo), lambda: block_penta_cholesky(A0, A1, A2))
 
 
 @_normal_solve.def_vmap
