@@ -193,9 +193,73 @@ def _dense_constrained(tex, i, start, end, length, v):
     return mu + x @ C.T
 
 
+def test_aligned_draws_past_the_segment_come_from_beyond(learned):
+    """Aligned blocks: the instance's own residuals (numpy), then ``beyond``'s rows; blocks
+    without an aligned instance, and shuffled draws, ignore ``beyond``."""
+    tex, ys = learned
+    bank = tex.residuals
+    rows, starts, lengths, labels, segments = (
+        np.asarray(a) for a in (bank.rows, bank.starts, bank.lengths, bank.labels, bank.segments)
+    )
+    segs = np.asarray(tex.segments)
+    L, k = 130, rows.shape[1]
+    left_out = np.setdiff1d(np.arange(len(segs)), segments)
+    inst = np.concatenate([segments, left_out, [-1]])
+    lab = segs[np.maximum(inst, 0), 3]
+    far = np.random.default_rng(0).standard_normal((inst.size, L, k)) + 100.0
+    key = jax.random.key(0)
+    v = np.asarray(draw_residuals(key, bank, lab, L, instances=inst, beyond=far))
+    assert (segs[segments, 2] - 2 < L).all()  # every block has rows past its segment
+    for m, j in enumerate(segments):
+        s0, a0, n0, i0 = segs[j]
+        u = np.asarray([_residual(tex, ys[s0], t, i0) for t in range(a0 + 2, a0 + n0)])
+        assert np.allclose(v[m, : n0 - 2], u, atol=1e-10)
+        assert np.array_equal(v[m, n0 - 2 :], far[m, n0 - 2 :])
+    # the left-out instance and the block without one: as without beyond (cyclic blocks)
+    plain = np.asarray(draw_residuals(key, bank, lab, L, instances=inst))
+    assert np.array_equal(v[len(segments) :], plain[len(segments) :])
+    blocks = [np.resize(rows[a : a + n], (L, k)) for a, n in zip(starts, lengths, strict=True)]
+    for m in (len(segments), len(segments) + 1):
+        assert any(np.array_equal(v[m], blocks[j]) for j in np.flatnonzero(labels == lab[m]))
+    # shuffled replay ignores beyond
+    assert np.array_equal(
+        np.asarray(draw_residuals(key, bank, lab, L, beyond=far)),
+        np.asarray(draw_residuals(key, bank, lab, L)),
+    )
+    with pytest.raises(ValueError, match="beyond"):
+        draw_residuals(key, bank, lab, L, instances=inst, beyond=far[:, :-1])
+
+
+def test_tail_draws_are_the_process_per_row_and_padding_free(learned):
+    """The rows past the aligned blocks: row ``m`` is the innovation process drawn with
+    ``fold_in(key, m)`` for a multiple of 256 frames, so more path rows or frames (the
+    padding) change none of them; without a process, independent Student-t draws."""
+    from mtex_jax.texture import draw_innovations
+    from mtex_jax.texture._noise.draws import independent_innovations
+    from mtex_jax.texture._synthesis import sequence as seq
+
+    tex, _ = learned
+    k, dof = int(tex.textons.C.shape[-1]), float(tex.textons.dof)
+    key = jax.random.key(7)
+    a = np.asarray(seq._tail_draws(key, tex.innovations, (5, 150, k), np.float64, dof))
+    b = np.asarray(seq._tail_draws(key, tex.innovations, (9, 190, k), np.float64, dof))
+    assert a.shape == (5, 150, k)
+    assert np.array_equal(b[:5, :150], a)
+    for m in (0, 4):
+        kk = jax.random.fold_in(key, m)
+        ref = draw_innovations(kk, tex.innovations, (256, k), np.float64, dof)
+        assert np.allclose(a[m], np.asarray(ref)[:150], rtol=0, atol=1e-12)
+    assert not np.allclose(a[0], a[1])
+    white = np.asarray(seq._tail_draws(key, None, (5, 150, k), np.float64, dof))
+    ref = independent_innovations(jax.random.fold_in(key, 3), (256, k), np.float64, dof)
+    assert np.allclose(white[3], np.asarray(ref)[:150], rtol=0, atol=1e-12)
+
+
 def test_aligned_synthesis_replays_each_textons_instance(learned):
     """Two textons along a clip's own segmentation: each is the constrained least squares
-    (dense numpy reference) with its own instance's residuals (numpy), cyclically."""
+    (dense numpy reference) with its own instance's residuals (numpy), then, for the two
+    equations of its end frames past them, the tail draws of the innovation process."""
+    from mtex_jax.texture._synthesis import sequence as seq
     from mtex_jax.texture._synthesis.sequence import synthesize_path
 
     tex, ys = learned
@@ -205,14 +269,22 @@ def test_aligned_synthesis_replays_each_textons_instance(learned):
     idx, path, lens = rows[:2], segs[rows[:2], 3], segs[rows[:2], 2]
     kp = np.asarray(tex.key_poses)
     args = (path, lens, idx, None, kp[rows[2]], False, "whitened", "blend")
-    Y = np.asarray(synthesize_path(tex, jax.random.key(3), *args, "aligned"))
+    key = jax.random.key(3)
+    Y = np.asarray(synthesize_path(tex, key, *args, "aligned"))
+    k = int(tex.textons.C.shape[-1])
+    l_pad = seq._round_up(int(max(lens.max(), tex.config.tmax)) + 2, seq._PAD_FRAMES)
+    shape = (seq.path_capacity(tex, 2), l_pad - 2, k)
+    tail = np.asarray(
+        seq._tail_draws(
+            jax.random.fold_in(key, 1), tex.innovations, shape, np.float64, float(tex.textons.dof)
+        )
+    )
     at = 0
     for m, j in enumerate(idx):
         s0, a0, n0, i0 = segs[j]
         u = np.asarray([_residual(tex, ys[s0], t, i0) for t in range(a0 + 2, a0 + n0)])
-        ref = _dense_constrained(
-            tex, i0, kp[j], kp[rows[m + 1]], n0 + 2, np.resize(u, (n0, u.shape[1]))
-        )
+        v = np.concatenate([u, tail[m, n0 - 2 : n0]])
+        ref = _dense_constrained(tex, i0, kp[j], kp[rows[m + 1]], n0 + 2, v)
         assert np.allclose(Y[at : at + n0], ref[:n0], atol=1e-8)
         at += n0
     # the shuffled replay does not follow the instance's residuals

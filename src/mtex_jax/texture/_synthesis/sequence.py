@@ -18,9 +18,12 @@ A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthe
    they are the first two frames of texton ``m + 1``: shared frames appear once. The
    innovations of each texton replay the training residuals of the segment whose key poses
    it starts from (the texture's :class:`~mtex_jax.texture.ResidualBank`, aligned replay;
-   ``replay="shuffled"``: another segment of the texton, drawn at random), or are drawn
-   from its :class:`~mtex_jax.texture.InnovationProcess` (autocorrelated, with a
-   persistent Student-t scale), or independently when it has neither.
+   where the texton is longer than that segment's residuals, the rows past them come from
+   the texture's :class:`~mtex_jax.texture.InnovationProcess`, not from the segment's start
+   again; ``replay="shuffled"``: another segment of the texton, drawn at random and
+   repeated cyclically), or are drawn from its :class:`~mtex_jax.texture.InnovationProcess`
+   (autocorrelated, with a persistent Student-t scale), or independently when it has
+   neither.
 3. The last texton is held, the same way, at the key poses of a successor drawn from
    ``M[ℓ_n, ·]`` that is not output — or, for the choreographer, at the requested end pose in
    its own last two frames. No texton runs free, so an unstable texton (spectral radius > 1)
@@ -252,12 +255,17 @@ def synthesize_path(
     if key is None:
         v = jnp.zeros((n_pad, l_pad - 2, k), dt)
     elif texture.residuals is not None:  # blocks of the training residuals
-        inst = None
+        inst, beyond = None, None
         if replay == "aligned":
             inst = np.concatenate([seg_idx, np.full(pad, -1)]).astype(np.int32)
             if start is not None:  # the given start is not the instance's state
                 inst[0] = -1
-        v = draw_residuals(key, texture.residuals, jnp.asarray(lab_p), l_pad - 2, dt, inst)
+            # past the instance's own residuals: the innovation process, not its start again
+            dof = None if tex.dof is None else float(tex.dof)
+            beyond = _tail_draws(
+                jax.random.fold_in(key, 1), texture.innovations, (n_pad, l_pad - 2, k), dt, dof
+            )
+        v = draw_residuals(key, texture.residuals, jnp.asarray(lab_p), l_pad - 2, dt, inst, beyond)
     else:
         # these draws are not prefix-stable in the frame axis: drawn at the unbucketed shape
         # (the path to a multiple of 8, the frames to a multiple of 16, as they always were),
@@ -287,6 +295,30 @@ def synthesize_path(
             "positive definite or non-finite states: non-finite or singular texton parameters?)"
         )
     return jax.device_put(Y)
+
+
+_TAIL_ROWS = 256  # tail draws are made per path row for a multiple of this many frames
+
+
+@eqx.filter_jit
+def _tail_draws(
+    key: Array, process: Any, shape: tuple[int, int, int], dtype: Any, dof: float | None
+) -> Array:
+    """Innovations ``(n, l, k)`` for the rows of aligned residual blocks past their segment
+    (:mod:`~mtex_jax.texture._noise.residual_bank`, *past the segment's end*): from the
+    texture's :class:`~mtex_jax.texture.InnovationProcess`, or independent ones without it.
+
+    Row ``m`` is drawn from ``fold_in(key, m)`` for ``l`` rounded up to a multiple of
+    ``_TAIL_ROWS`` frames and cut, so that the padding of the path and frame axes (design
+    §11) changes no draw."""
+    n, length, k = shape
+    rows = _round_up(length, _TAIL_ROWS)
+    if process is None:
+        one = lambda kk: independent_innovations(kk, (rows, k), dtype, dof)
+    else:
+        one = lambda kk: draw_innovations(kk, process, (rows, k), dtype, dof)
+    keys = jax.vmap(lambda m: jax.random.fold_in(key, m))(jnp.arange(n))
+    return jax.vmap(one)(keys)[:, :length]
 
 
 @eqx.filter_jit
@@ -393,10 +425,12 @@ def synthesize(
         replay: for a texture with a :class:`~mtex_jax.texture.ResidualBank` (the default
             innovations): ``"aligned"`` (default): each texton replays the residuals of the
             training segment whose key poses it starts from, in the state they were measured
-            in (design §10.8); ``"shuffled"``: those of a segment of the texton drawn at
-            random (the residual block bootstrap without alignment: faster motion, more
-            foot skating, less copying). The first texton of a synthesis with a given
-            ``start``, and a segment the bank left out, draw at random.
+            in (design §10.8), and past that segment's end draws from the texture's
+            :class:`~mtex_jax.texture.InnovationProcess`; ``"shuffled"``: those of a
+            segment of the texton drawn at random (the residual block bootstrap without
+            alignment: faster motion, more foot skating, less copying). The first texton of
+            a synthesis with a given ``start``, and a segment the bank left out, draw at
+            random.
 
     Returns:
         a :class:`Synthesis` (observations, path, lengths, starts, decoded motion).
