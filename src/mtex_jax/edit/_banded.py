@@ -389,6 +389,7 @@ def solve_banded(
 
     keep_rows = (~held)[:, None].astype(dt) * var_ch[None, :]
     grad_of = jax.grad(cost_of)
+    value_and_grad_of = jax.value_and_grad(cost_of)
     early_rtol = 100.0 * rtol
 
     def advance(s: _Iterate, z_try: Array, fac_ok: Array, pred: Array, full: bool) -> _Iterate:
@@ -406,9 +407,16 @@ def solve_banded(
             zt = z + (0.5 ** (i + 1)) * dz
             return zt, cost_of(zt, s.shift), i + 1
 
-        zt, ct, i = lax.while_loop(worse, halve, (z_try, cost_of(z_try, s.shift), 0))
+        if chord:  # the cost and the gradient the next chord step needs, in one pass
+            c_try, g_try = value_and_grad_of(z_try, s.shift)
+        else:
+            c_try, g_try = cost_of(z_try, s.shift), s.g
+        zt, ct, i = lax.while_loop(worse, halve, (z_try, c_try, 0))
         better = (ct < c) & jnp.isfinite(ct)
         z_new, c_new = jnp.where(better, zt, z), jnp.where(better, ct, c)
+        # the gradient at z_new: z_try's if taken whole, the old one if no step was taken
+        g_new = jnp.where(better, g_try, s.g)
+        g_ok = jnp.where(better, i == 0, s.g_ok)
         step = jnp.max(jnp.abs(z_new - z))
         # rounds before the last stop early: their targets are shifted again anyway
         tol = jnp.where(s.round + 1 < rounds, early_rtol, rtol)
@@ -441,6 +449,8 @@ def solve_banded(
             finished=last,
             fresh=~end & poor,  # a round starts with a chord step (as it ends)
             ok=s.ok & fac_ok,
+            g=g_new,
+            g_ok=g_ok & ~new_round,  # a new round's shift changes the gradient
         )
 
     def fresh_then_chords(s: _Iterate) -> _Iterate:
@@ -453,7 +463,7 @@ def solve_banded(
         def chord_step(s: _Iterate) -> _Iterate:
             # z − B₀⁻¹ g with the factor B₀ of the last fresh step (a loop invariant: the
             # factor is not carried), and the model's promise ½ gᵀB₀⁻¹g
-            g = grad_of(s.z, s.shift) * keep_rows
+            g = lax.cond(s.g_ok, lambda: s.g, lambda: grad_of(s.z, s.shift)) * keep_rows
             z_c = s.z - block_penta_solve(fac, g) * keep_rows
             return advance(s, z_c, fac.ok, -0.5 * jnp.sum((z_c - s.z) * g), full=False)
 
@@ -473,6 +483,8 @@ def solve_banded(
         finished=jnp.asarray(False),
         fresh=jnp.asarray(True),
         ok=jnp.asarray(True),
+        g=z0,
+        g_ok=jnp.asarray(False),
     )
     s = lax.while_loop(lambda s: ~s.finished, fresh_then_chords, init)
     z = jnp.where(held[:, None], delta, s.z * var_ch)
@@ -494,6 +506,8 @@ class _Iterate(eqx.Module):
     finished: Array
     fresh: Array
     ok: Array
+    g: Array  # the cost's gradient at z (chord steps), valid if g_ok
+    g_ok: Array
 
 
 def _no_factor(T: int, D: int, dt) -> BlockPentaCholesky:
