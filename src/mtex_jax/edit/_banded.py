@@ -496,18 +496,18 @@ def solve_banded(
 class _Iterate(eqx.Module):
     """The state of :func:`solve_banded`'s iteration (all rounds in one loop)."""
 
-    z: Array
-    shift: Array
-    cost: Array
-    round: Array
-    k: Array
-    steps: Array
-    converged: Array
-    finished: Array
-    fresh: Array
-    ok: Array
-    g: Array  # the cost's gradient at z (chord steps), valid if g_ok
-    g_ok: Array
+    z: Float[Array, "T D"]
+    shift: Float[Array, "P 3"]  # the exact targets' multiplier shifts
+    cost: Float[Array, ""]
+    round: Int[Array, ""]
+    k: Int[Array, ""]  # steps in this round
+    steps: Int[Array, ""]
+    converged: Bool[Array, ""]
+    finished: Bool[Array, ""]
+    fresh: Bool[Array, ""]  # the next step refactors
+    ok: Bool[Array, ""]
+    g: Float[Array, "T D"]  # the cost's gradient at z (chord steps), valid if g_ok
+    g_ok: Bool[Array, ""]
 
 
 def _no_factor(T: int, D: int, dt) -> BlockPentaCholesky:
