@@ -236,8 +236,8 @@ def anatomy(tex, syn, cons, batch: int = 16, repeats: int = 3) -> dict[str, Any]
     shapes: the per-frame Jacobians (coloured tangents, as the solver, and one tangent per
     channel) and the block Cholesky solve of the normal equations."""
     from mtex_jax.edit._api import check_constraints, kept_channels, observations_of, segments_of
-    from mtex_jax.edit._banded import (
-        _normal_solve,
+    from mtex_jax.edit._banded import _normal_solve
+    from mtex_jax.edit._jacobians import (
         channel_colouring,
         frame_jacobians,
         kept_positions,

@@ -17,15 +17,15 @@ import edit_setup
 import mtex_jax as mj
 from cpu_devices import run_with_cpu_devices
 from mtex_jax import edit as E
-from mtex_jax.edit._banded import (
-    _step_factor,
+from mtex_jax.edit._banded import _step_factor
+from mtex_jax.edit._fk import fk_positions
+from mtex_jax.edit._jacobians import (
     channel_colouring,
     frame_columns,
     frame_jacobians,
     kept_positions,
     root_free_channels,
 )
-from mtex_jax.edit._fk import fk_positions
 from mtex_jax.edit._solve import sub_skeleton
 from mtex_jax.metrics import fit_contacts
 

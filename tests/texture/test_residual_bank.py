@@ -236,13 +236,13 @@ def test_tail_draws_are_the_process_per_row_and_padding_free(learned):
     padding) change none of them; without a process, independent Student-t draws."""
     from mtex_jax.texture import draw_innovations
     from mtex_jax.texture._noise.draws import independent_innovations
-    from mtex_jax.texture._synthesis import sequence as seq
+    from mtex_jax.texture._synthesis import path_noise as pn
 
     tex, _ = learned
     k, dof = int(tex.textons.C.shape[-1]), float(tex.textons.dof)
     key = jax.random.key(7)
-    a = np.asarray(seq._tail_draws(key, tex.innovations, (5, 150, k), np.float64, dof))
-    b = np.asarray(seq._tail_draws(key, tex.innovations, (9, 190, k), np.float64, dof))
+    a = np.asarray(pn.tail_draws(key, tex.innovations, (5, 150, k), np.float64, dof))
+    b = np.asarray(pn.tail_draws(key, tex.innovations, (9, 190, k), np.float64, dof))
     assert a.shape == (5, 150, k)
     assert np.array_equal(b[:5, :150], a)
     for m in (0, 4):
@@ -250,7 +250,7 @@ def test_tail_draws_are_the_process_per_row_and_padding_free(learned):
         ref = draw_innovations(kk, tex.innovations, (256, k), np.float64, dof)
         assert np.allclose(a[m], np.asarray(ref)[:150], rtol=0, atol=1e-12)
     assert not np.allclose(a[0], a[1])
-    white = np.asarray(seq._tail_draws(key, None, (5, 150, k), np.float64, dof))
+    white = np.asarray(pn.tail_draws(key, None, (5, 150, k), np.float64, dof))
     ref = independent_innovations(jax.random.fold_in(key, 3), (256, k), np.float64, dof)
     assert np.allclose(white[3], np.asarray(ref)[:150], rtol=0, atol=1e-12)
 
@@ -259,7 +259,7 @@ def test_aligned_synthesis_replays_each_textons_instance(learned):
     """Two textons along a clip's own segmentation: each is the constrained least squares
     (dense numpy reference) with its own instance's residuals (numpy), then, for the two
     equations of its end frames past them, the tail draws of the innovation process."""
-    from mtex_jax.texture._synthesis import sequence as seq
+    from mtex_jax.texture._synthesis import path_noise as pn, sequence as seq
     from mtex_jax.texture._synthesis.sequence import synthesize_path
 
     tex, ys = learned
@@ -272,10 +272,10 @@ def test_aligned_synthesis_replays_each_textons_instance(learned):
     key = jax.random.key(3)
     Y = np.asarray(synthesize_path(tex, key, *args, "aligned"))
     k = int(tex.textons.C.shape[-1])
-    l_pad = seq._round_up(int(max(lens.max(), tex.config.tmax)) + 2, seq._PAD_FRAMES)
+    l_pad = pn.round_up(int(max(lens.max(), tex.config.tmax)) + 2, seq._PAD_FRAMES)
     shape = (seq.path_capacity(tex, 2), l_pad - 2, k)
     tail = np.asarray(
-        seq._tail_draws(
+        pn.tail_draws(
             jax.random.fold_in(key, 1), tex.innovations, shape, np.float64, float(tex.textons.dof)
         )
     )

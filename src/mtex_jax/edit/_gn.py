@@ -24,14 +24,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..motion import FeatureMap, ground_axes, quat_conj, quat_rotate, yaw_quat
-from ._banded import (
-    PointTargets,
-    channel_colouring,
-    kept_positions,
-    root_free_channels,
-    solve_banded,
-)
+from ._banded import PointTargets, solve_banded
 from ._constraints import Constraints, EditWeights
+from ._jacobians import channel_colouring, kept_positions, root_free_channels
 from ._prior import FrameSegments, WhitenedTextons, prior_hessian, smoothness_hessian
 from ._solve import EditResult, finish_banded, problem, run_means
 

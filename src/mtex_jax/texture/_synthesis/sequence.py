@@ -59,9 +59,6 @@ from ...core import (
 )
 from ...motion import Motion
 from .._model import MotionTexture
-from .._noise.draws import independent_innovations
-from .._noise.innovation_process import draw_innovations
-from .._noise.residual_bank import draw_residuals
 from .._texton.texton import Texton
 from .checks import (
     check_lengths,
@@ -72,6 +69,7 @@ from .checks import (
     scale_lengths,
 )
 from .keyposes import key_pose_instances, next_texton
+from .path_noise import path_innovations, round_up
 from .paths import random_path
 from .texton_synthesis import Weighting, constrained_texton
 
@@ -88,7 +86,7 @@ def path_capacity(texture: MotionTexture, n: int) -> int:
     shortest = int(max(2, np.asarray(texture.segment_lengths).min()))
     if texture.log_durations is not None:
         shortest = min(shortest, int(texture.config.tmin))
-    return max(_round_up(_CLASS_FRAMES // shortest + 2, _PAD_TEXTONS), _round_up(n, _PAD_TEXTONS))
+    return max(round_up(_CLASS_FRAMES // shortest + 2, _PAD_TEXTONS), round_up(n, _PAD_TEXTONS))
 
 
 Residual = Literal["blend", "subspace"]
@@ -143,10 +141,6 @@ def _draw_durations(key: Array, texture: MotionTexture, path: np.ndarray) -> np.
 @jax.jit
 def _categorical_rows(key: Array, logits: Array) -> Array:
     return jax.random.categorical(key, logits, axis=-1)
-
-
-def _round_up(x: int, m: int) -> int:
-    return -(-x // m) * m
 
 
 # --------------------------------------------------------------------------------------------
@@ -246,7 +240,7 @@ def synthesize_path(
     longest = int(end_at.max()) + 2
     if texture.config.tmax is not None:  # every drawn length fits one bucket
         longest = max(longest, int(texture.config.tmax) + 2)
-    l_pad = _round_up(longest, _PAD_FRAMES)
+    l_pad = round_up(longest, _PAD_FRAMES)
     pad = n_pad - n
     lab_p = np.concatenate([path, np.zeros(pad, np.int64)]).astype(np.int32)
     st_p = np.concatenate([starts, np.repeat(starts[:1], pad, 0)])
@@ -254,25 +248,16 @@ def synthesize_path(
     at_p = np.concatenate([end_at, np.full(pad, l_pad - 2)]).astype(np.int32)
     if key is None:
         v = jnp.zeros((n_pad, l_pad - 2, k), dt)
-    elif texture.residuals is not None:  # blocks of the training residuals
-        inst, beyond = None, None
-        if replay == "aligned":
+    else:
+        inst = None
+        if texture.residuals is not None and replay == "aligned":
             inst = np.concatenate([seg_idx, np.full(pad, -1)]).astype(np.int32)
             if start is not None:  # the given start is not the instance's state
                 inst[0] = -1
-            # past the instance's own residuals: the innovation process, not its start again
-            dof = None if tex.dof is None else float(tex.dof)
-            beyond = _tail_draws(
-                jax.random.fold_in(key, 1), texture.innovations, (n_pad, l_pad - 2, k), dt, dof
-            )
-        v = draw_residuals(key, texture.residuals, jnp.asarray(lab_p), l_pad - 2, dt, inst, beyond)
-    else:
-        # these draws are not prefix-stable in the frame axis: drawn at the unbucketed shape
-        # (the path to a multiple of 8, the frames to a multiple of 16, as they always were),
-        # then padded with zeros to the bucket
-        shape = (_round_up(n, 8), _round_up(int(end_at.max()) + 2, 16) - 2, k)
         dof = None if tex.dof is None else float(tex.dof)
-        v = _padded_draws(key, texture.innovations, shape, (n_pad, l_pad - 2), dt, dof)
+        v = path_innovations(
+            key, texture, lab_p, inst, n, (n_pad, l_pad - 2, k), int(end_at.max()), dt, dof
+        )
     put = jax.device_put  # jnp.asarray of a host array compiles a copy per shape
     out = _path_core_jit(
         tex,
@@ -295,47 +280,6 @@ def synthesize_path(
             "positive definite or non-finite states: non-finite or singular texton parameters?)"
         )
     return jax.device_put(Y)
-
-
-_TAIL_ROWS = 256  # tail draws are made per path row for a multiple of this many frames
-
-
-@eqx.filter_jit
-def _tail_draws(
-    key: Array, process: Any, shape: tuple[int, int, int], dtype: Any, dof: float | None
-) -> Array:
-    """Innovations ``(n, l, k)`` for the rows of aligned residual blocks past their segment
-    (:mod:`~mtex_jax.texture._noise.residual_bank`, *past the segment's end*): from the
-    texture's :class:`~mtex_jax.texture.InnovationProcess`, or independent ones without it.
-
-    Row ``m`` is drawn from ``fold_in(key, m)`` for ``l`` rounded up to a multiple of
-    ``_TAIL_ROWS`` frames and cut, so that the padding of the path and frame axes (design
-    §11) changes no draw."""
-    n, length, k = shape
-    rows = _round_up(length, _TAIL_ROWS)
-    if process is None:
-        one = lambda kk: independent_innovations(kk, (rows, k), dtype, dof)
-    else:
-        one = lambda kk: draw_innovations(kk, process, (rows, k), dtype, dof)
-    keys = jax.vmap(lambda m: jax.random.fold_in(key, m))(jnp.arange(n))
-    return jax.vmap(one)(keys)[:, :length]
-
-
-@eqx.filter_jit
-def _padded_draws(
-    key: Array,
-    process: Any,
-    shape: tuple[int, int, int],
-    padded: tuple[int, int],
-    dtype: Any,
-    dof: float | None,
-) -> Array:
-    """Innovations of the shape they always had, zero-padded to the bucket: one program."""
-    if process is None:
-        v = independent_innovations(key, shape, dtype, dof)
-    else:  # each texton's stretch of innovations from the fitted process
-        v = draw_innovations(key, process, shape, dtype, dof)
-    return jnp.pad(v, ((0, padded[0] - shape[0]), (0, padded[1] - shape[1]), (0, 0)))
 
 
 def finish(
