@@ -153,18 +153,14 @@ def frame_columns(fn, Y: Array, free_ch: Array, colouring: Colouring | None = No
     a 1,280-frame edit, ``vmap`` over the 21 tangents took 1.7 times as long.
     """
     D = Y.shape[1]
-    if colouring is None:
-        colour = tuple(range(D))
-        n_col = D
-        support = jnp.broadcast_to(free_ch[:, None], (D, 1))
-    else:
-        colour, n_col = colouring.colour, colouring.n_colours
-        support = jnp.asarray(np.asarray(colouring.support), Y.dtype) * free_ch[:, None]
+    colour = tuple(range(D)) if colouring is None else colouring.colour
+    n_col = D if colouring is None else colouring.n_colours
     groups = jnp.asarray(np.eye(n_col)[np.asarray(colour)].T, Y.dtype)  # (C, D)
     P, lin = jax.linearize(fn, Y)
     cols = lax.map(lambda e: lin(jnp.broadcast_to(e * free_ch, Y.shape)), groups)
-    if colouring is None:
-        support = jnp.broadcast_to(support, (D, P.shape[1]))
+    # without a colouring every channel may move every joint
+    allowed = np.ones((D, P.shape[1])) if colouring is None else np.asarray(colouring.support)
+    support = jnp.asarray(allowed, Y.dtype) * free_ch[:, None]
     return FrameColumns(P=P, cols=cols, colour=tuple(int(c) for c in colour), support=support)
 
 
