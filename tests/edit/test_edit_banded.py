@@ -17,8 +17,9 @@ import edit_setup
 import mtex_jax as mj
 from cpu_devices import run_with_cpu_devices
 from mtex_jax import edit as E
-from mtex_jax.edit._banded import _step_factor
+from mtex_jax.edit._banded import PointTargets, solve_banded, step_solve
 from mtex_jax.edit._fk import fk_positions
+from mtex_jax.edit._gn import join_points
 from mtex_jax.edit._jacobians import (
     channel_colouring,
     frame_columns,
@@ -26,7 +27,9 @@ from mtex_jax.edit._jacobians import (
     kept_positions,
     root_free_channels,
 )
+from mtex_jax.edit._prior import WhitenedTextons, prior_residuals
 from mtex_jax.edit._solve import sub_skeleton
+from mtex_jax.edit._whiten import band_matvec, band_quad
 from mtex_jax.metrics import fit_contacts
 
 FPS, T = edit_setup.FPS, edit_setup.T
@@ -123,9 +126,25 @@ def _dense_penta(A0, A1, A2):
     return M
 
 
-def test_single_precision_step_factor_and_its_double_precision_fallback():
-    from mtex_jax.linalg import block_penta_solve
+def test_band_matvec_and_quad_match_the_dense_matrix():
+    rng = np.random.default_rng(11)
+    T, D = 6, 3
+    A0 = rng.standard_normal((T, D, D))
+    A0 = A0 + np.swapaxes(A0, 1, 2)
+    A1, A2 = rng.standard_normal((T, D, D)), rng.standard_normal((T, D, D))
+    A1[0] = A2[0] = A2[1] = 0.0  # the band layout of prior_hessian
+    M = _dense_penta(A0, A1, A2)
+    v = rng.standard_normal((T, D))
+    bands = tuple(jnp.asarray(a) for a in (A0, A1, A2))
+    np.testing.assert_allclose(
+        np.asarray(band_matvec(bands, jnp.asarray(v))).ravel(), M @ v.ravel(), rtol=1e-12
+    )
+    np.testing.assert_allclose(
+        float(band_quad(bands, jnp.asarray(v))), v.ravel() @ M @ v.ravel(), rtol=1e-12
+    )
 
+
+def test_single_precision_step_factor_and_its_double_precision_fallback():
     rng = np.random.default_rng(3)
     T, D = 7, 4
     B = rng.standard_normal((T, D, D))
@@ -134,25 +153,30 @@ def test_single_precision_step_factor_and_its_double_precision_fallback():
     M = _dense_penta(A0, A1, A2)
     r = rng.standard_normal((T, D))
     ref = np.linalg.solve(M, r.reshape(-1)).reshape(T, D)
-    fac = _step_factor(*(jnp.asarray(a) for a in (A0, A1, A2)))
-    assert bool(fac.ok) and fac.Linv.dtype == jnp.float64
-    x = np.asarray(block_penta_solve(fac, jnp.asarray(r)))
+    x, fac, ok = step_solve(
+        lambda x: x, tuple(jnp.asarray(a) for a in (A0, A1, A2)), jnp.asarray(r)
+    )
+    # the factor is kept in single precision, the substitution runs in double
+    assert bool(ok) and bool(fac.ok) and fac.Linv.dtype == jnp.float32
+    assert x.dtype == jnp.float64
+    x = np.asarray(x)
     # single precision: a step direction, not an exact solve
     assert 1e-12 < np.abs(x - ref).max() / np.abs(ref).max() < 1e-5
     # a pivot that single precision rounds to a singular block (eigenvalue 1e-10 of 2):
-    # the factor is recomputed in double precision and solves exactly
+    # the step is factored again in double precision and solved exactly
     A0[2, :2, :2] = [[1.0, 1.0 - 1e-10], [1.0 - 1e-10, 1.0]]
     A0[2, 2:, :2] = A0[2, :2, 2:] = 0.0
     A1[2] = A1[3] = A2[2] = A2[3] = A2[4] = 0.0  # block 2 decoupled
     M = _dense_penta(A0, A1, A2)
     assert np.all(np.linalg.eigvalsh(M) > 0)
     ref = np.linalg.solve(M, r.reshape(-1)).reshape(T, D)
-    fac = _step_factor(*(jnp.asarray(a) for a in (A0, A1, A2)))
-    assert bool(fac.ok)
-    x = np.asarray(block_penta_solve(fac, jnp.asarray(r)))
-    np.testing.assert_allclose(x, ref, rtol=1e-6, atol=1e-8 * np.abs(ref).max())
-    lo = _step_factor(*(jnp.asarray(a, jnp.float32) for a in (A0, A1, A2)))
-    assert not bool(lo.ok)  # the same matrix in single precision fails: the case is real
+    x, fac, ok = step_solve(
+        lambda x: x, tuple(jnp.asarray(a) for a in (A0, A1, A2)), jnp.asarray(r)
+    )
+    assert bool(ok)
+    # the single-precision factor failed (the case is real) and is flagged for chord steps
+    assert not bool(fac.ok)
+    np.testing.assert_allclose(np.asarray(x), ref, rtol=1e-6, atol=1e-8 * np.abs(ref).max())
 
 
 @pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
@@ -172,6 +196,16 @@ def test_gauss_newton_and_levenberg_marquardt_agree(tex, syn):
     np.testing.assert_allclose(np.asarray(gn.Y), np.asarray(lm.Y), atol=2e-3)
     Pg, Pl = _positions(tex, syn, gn.Y), _positions(tex, syn, lm.Y)
     assert np.abs(Pg - Pl).max() < 1e-3
+    # the banded solver measures the prior cost as a quadratic form on the prior's bands;
+    # it is ½‖w (r(Y) − r(Y₀))‖² of the prior's residuals
+    tx = WhitenedTextons.of(tex.textons, jnp.float64)
+    seg = E.segments_of(tex, syn)
+    r1 = prior_residuals(tx, seg, jnp.asarray(gn.Y))
+    r0 = prior_residuals(tx, seg, jnp.asarray(syn.Y))
+    w = float(E.EditWeights().prior)
+    ref = 0.5 * sum(float(jnp.sum((w * (a - b)) ** 2)) for a, b in zip(r1, r0, strict=True))
+    assert ref > 0
+    np.testing.assert_allclose(float(gn.prior_cost), ref, rtol=1e-9)
 
 
 def test_no_constraint_leaves_the_motion_exactly_unchanged(tex, syn):
@@ -337,3 +371,57 @@ def test_clean_result_decodes_with_its_start_position(tex, syn, contacts):
     np.testing.assert_allclose(
         np.asarray(held.edit.start_position), fm.start_of(syn.motion)[0], atol=1e-12
     )
+
+
+def _toy_points(T, F, K, rng, per_frame):
+    slots = rng.integers(0, K, F)
+    return PointTargets(
+        slot=jnp.asarray(np.tile(slots, T), jnp.int32),
+        frame=jnp.asarray(np.repeat(np.arange(T), F), jnp.int32),
+        target=jnp.asarray(0.3 * rng.standard_normal((T * F, 3))),
+        weight=jnp.asarray(rng.uniform(0.0, 3.0, (T * F, 3))),
+        exact=jnp.asarray(rng.uniform(size=T * F) < 0.3),
+        n_sparse=0 if per_frame else None,
+        per_frame=F if per_frame else 0,
+    )
+
+
+def test_frame_major_targets_solve_as_sparse_ones_and_join_per_frame():
+    """Targets marked frame-major (assembled per frame) give the solve of the same targets
+    assembled one by one; join_points merges frame-major sets frame by frame."""
+    rng = np.random.default_rng(4)
+    T, D, K, F = 12, 5, 3, 2
+    W = jnp.asarray(rng.standard_normal((K, 3, D)) / np.sqrt(D))
+    fn = lambda Y: jnp.tanh(jnp.einsum("kcd,td->tkc", W, Y))
+    Y0 = jnp.asarray(0.2 * rng.standard_normal((T, D)))
+    eye = np.broadcast_to(np.eye(D), (T, D, D))
+    H1, H2 = -0.5 * eye.copy(), 0.1 * eye.copy()
+    H1[0] = H2[0] = H2[1] = 0.0  # the band layout of prior_hessian
+    bands = (jnp.asarray(2.0 * eye), jnp.asarray(H1), jnp.asarray(H2))
+    args = (jnp.ones(D), jnp.ones(D), jnp.zeros(T, bool), Y0)
+    lower = jnp.full((T, K), -jnp.inf)
+    sparse = _toy_points(T, F, K, np.random.default_rng(9), per_frame=False)
+    dense = _toy_points(T, F, K, np.random.default_rng(9), per_frame=True)
+    run = lambda p: solve_banded(fn, Y0, bands, *args, p, lower, 1.0, 2, rounds=2)
+    a, b = run(sparse), run(dense)
+    assert int(a.steps) > 1 and bool(a.converged) and bool(b.converged)
+    np.testing.assert_allclose(np.asarray(b.z), np.asarray(a.z), atol=1e-6)
+    # a sparse set joined with two frame-major ones: sparse first, then per frame
+    extra = _toy_points(T, 1, K, rng, per_frame=True)
+    pos = PointTargets(
+        slot=jnp.asarray([1], jnp.int32),
+        frame=jnp.asarray([5], jnp.int32),
+        target=jnp.zeros((1, 3)),
+        weight=jnp.ones((1, 3)),
+        exact=jnp.asarray([True]),
+    )
+    j = join_points(join_points(pos, dense), extra)
+    assert j.sparse_count == 1 and j.per_frame == F + 1
+    fr = np.asarray(j.frame)
+    assert fr[0] == 5 and np.array_equal(fr[1:], np.repeat(np.arange(T), F + 1))
+    tg = np.asarray(j.target)[1:].reshape(T, F + 1, 3)
+    np.testing.assert_array_equal(tg[:, :F], np.asarray(dense.target).reshape(T, F, 3))
+    np.testing.assert_array_equal(tg[:, F], np.asarray(extra.target))
+    # the joined set solves as the same targets all assembled one by one
+    flat = PointTargets(slot=j.slot, frame=j.frame, target=j.target, weight=j.weight, exact=j.exact)
+    np.testing.assert_allclose(np.asarray(run(j).z), np.asarray(run(flat).z), atol=1e-6)

@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 from test_linalg import random_band  # the random SPD band of the tridiagonal tests
 
-from mtex_jax.linalg import BlockPentaCholesky, block_penta_cholesky, block_penta_solve
+from mtex_jax.linalg import (
+    BlockPentaCholesky,
+    block_penta_cholesky,
+    block_penta_factor,
+    block_penta_solve,
+)
 
 
 def lower_blocks(diag, off1, off2):
@@ -76,3 +81,60 @@ def test_bad_factor_shapes():
         BlockPentaCholesky(
             Linv=z, L1=jnp.zeros((3, 2, 2)), L2=z, ok=jnp.asarray(True), first_bad=jnp.asarray(-1)
         )
+
+
+def test_lower_precision_factor_and_mixed_precision_solve():
+    """A float32 factor of a float64 matrix (each block rounded inside the recursion) equals
+    the factor of the rounded matrix; the solve with it runs in float64."""
+    rng = np.random.default_rng(8)
+    A, diag, off1, off2 = random_band(rng, 9, 4)
+    blocks = lower_blocks(diag, off1, off2)
+    f32 = block_penta_cholesky(*blocks, dtype=jnp.float32)
+    assert f32.Linv.dtype == f32.L1.dtype == f32.L2.dtype == jnp.float32
+    ref = block_penta_cholesky(*(b.astype(jnp.float32) for b in blocks))
+    for a, b in zip((f32.Linv, f32.L1, f32.L2), (ref.Linv, ref.L1, ref.L2), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    r = rng.standard_normal((9, 4))
+    x = block_penta_solve(f32, jnp.asarray(r))
+    assert x.dtype == jnp.float64
+    exact = np.linalg.solve(A, r.ravel()).reshape(9, 4)
+    # as accurate as single precision allows, and no more (the factor is rounded)
+    err = np.abs(np.asarray(x) - exact).max() / np.abs(exact).max()
+    assert 1e-12 < err < 1e-4
+    # the same substitution with the factor converted up front gives the same numbers
+    up = BlockPentaCholesky(
+        Linv=f32.Linv.astype(jnp.float64),
+        L1=f32.L1.astype(jnp.float64),
+        L2=f32.L2.astype(jnp.float64),
+        ok=f32.ok,
+        first_bad=f32.first_bad,
+    )
+    x_up = block_penta_solve(up, jnp.asarray(r))
+    np.testing.assert_allclose(np.asarray(x_up), np.asarray(x), rtol=0, atol=1e-14)
+
+
+def test_blocks_formed_inside_the_recursion_equal_stored_blocks():
+    """block_penta_factor with blocks computed per frame from stored pieces (a masked sum,
+    as the edit solver forms its normal matrix) is the factor of the stored matrix."""
+    rng = np.random.default_rng(12)
+    n, k = 8, 3
+    _, diag, off1, off2 = random_band(rng, n, k)
+    A0, A1, A2 = (np.asarray(a) for a in lower_blocks(diag, off1, off2))
+    extra = rng.standard_normal((n, k, k))
+    extra = np.einsum("tij,tkj->tik", extra, extra)  # PSD, keeps the matrix SPD
+    m = rng.uniform(0.5, 1.0, n)
+
+    def blocks(x):
+        a0, e, a1, a2, mt = x
+        return a0 + e, a1 * mt, a2 * mt
+
+    xs = tuple(jnp.asarray(a) for a in (A0, extra, A1, A2, m))
+    f = block_penta_factor(blocks, xs)
+    ref = block_penta_cholesky(
+        jnp.asarray(A0 + extra),
+        jnp.asarray(A1 * m[:, None, None]),
+        jnp.asarray(A2 * m[:, None, None]),
+    )
+    assert bool(f.ok)
+    for a, b in zip((f.Linv, f.L1, f.L2), (ref.Linv, ref.L1, ref.L2), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)

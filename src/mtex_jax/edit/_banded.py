@@ -46,10 +46,10 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ..linalg import BlockPentaCholesky, block_penta_cholesky, block_penta_solve, sym
+from ..linalg import BlockPentaCholesky, block_penta_factor, block_penta_solve, sym
 from ._jacobians import Colouring, frame_columns
 from ._prior import smoothness_hessian
-from ._whiten import band_matvec
+from ._whiten import band_matvec, band_quad
 
 __all__ = ["BandedSolve", "PointTargets", "solve_banded"]
 
@@ -57,12 +57,19 @@ __all__ = ["BandedSolve", "PointTargets", "solve_banded"]
 class PointTargets(eqx.Module):
     """Joint world positions wanted at frames, with per-coordinate weights.
 
+    The first ``n_sparse`` targets may sit at any frames. The rest, if ``per_frame > 0``, are
+    *frame-major*: ``per_frame`` targets at each frame ``0, 1, …`` in order (clean's planted
+    and swing feet: one per foot and frame), so a solve assembles their normal equations per
+    frame, without one ``D × D`` matrix per target (:func:`solve_banded`).
+
     Attributes:
         slot: ``(P,)`` index of the joint among the solve's kept joints.
         frame: ``(P,)`` frame of each target.
         target: ``(P, 3)`` world positions (metres).
         weight: ``(P, 3)`` per metre (0: that coordinate is free; an inactive slot is all 0).
         exact: ``(P,)`` whether multiplier rounds shift this target (meet it exactly).
+        n_sparse: the leading targets at any frames (``None``: all of them).
+        per_frame: the frame-major targets per frame (``0``: none).
     """
 
     slot: Int[Array, " P"]
@@ -70,6 +77,26 @@ class PointTargets(eqx.Module):
     target: Float[Array, "P 3"]
     weight: Float[Array, "P 3"]
     exact: Bool[Array, " P"]
+    n_sparse: int | None = eqx.field(static=True, default=None)
+    per_frame: int = eqx.field(static=True, default=0)
+
+    def __check_init__(self) -> None:
+        P = int(jnp.shape(self.frame)[-1])
+        s = self.sparse_count
+        if not 0 <= s <= P:
+            raise ValueError(f"PointTargets: n_sparse={s} is not in [0, {P}]")
+        if self.per_frame < 0 or (self.per_frame == 0 and s != P):
+            raise ValueError("PointTargets: targets past n_sparse need per_frame > 0")
+        if self.per_frame > 0 and (P - s) % self.per_frame:
+            raise ValueError(
+                f"PointTargets: {P - s} frame-major targets are not a multiple of "
+                f"per_frame={self.per_frame}"
+            )
+
+    @property
+    def sparse_count(self) -> int:
+        """The number of leading targets at any frames."""
+        return int(jnp.shape(self.frame)[-1]) if self.n_sparse is None else self.n_sparse
 
 
 class BandedSolve(eqx.Module):
@@ -193,7 +220,8 @@ def solve_banded(
         P = fn(edited(z)) + offset(z)
         r = point_res(P, shift)
         low = jnp.maximum(lower - P[..., up], 0.0)
-        hz = _band_quad(bands, anchor, jnp.where(held[:, None], delta, z * var_ch))
+        v = jnp.where(held[:, None], delta, z * var_ch)
+        hz = band_quad(bands, v) + jnp.sum((anchor * v) ** 2)
         return 0.5 * (hz + jnp.sum(w2 * r * r) + jnp.sum((lw * low) ** 2))
 
     def gn_step(z: Array, shift: Array, active: Array):
@@ -204,22 +232,34 @@ def solve_banded(
             (c0, c1), (h0, h1) = move_root
             Jp = Jp.at[:, h0, c0].set(1.0).at[:, h1, c1].set(1.0)
         r = point_res(P, shift)
-        zp = z[points.frame]
-        # Σ Jᵀ W² J and Σ Jᵀ W² (J z − r), scattered to the frames
-        A_p = jnp.einsum("pcd,pc,pce->pde", Jp, w2, Jp)
-        b_p = jnp.einsum("pcd,pc,pc->pd", Jp, w2, jnp.einsum("pce,pe->pc", Jp, zp) - r)
-        A = jnp.zeros((T, D, D), dt).at[points.frame].add(A_p)
-        b = jnp.zeros((T, D), dt).at[points.frame].add(b_p)
+        # Σ Jᵀ W² J and Σ Jᵀ W² (J z − r). The frame-major targets' rows and the floor's
+        # rows are weighted and stacked per frame, one batched product; the sparse targets'
+        # terms are scattered to their frames (no D × D matrix per frame-major target)
+        ns = points.sparse_count
         h = P[..., up]
         act = (h < lower).astype(dt)  # (T, K): one-sided, the active set at z
-        Ju = fc.axis(up) * (lw * act)[..., None]  # (T, K, D)
-        ru = lw * act * (h - jnp.where(act > 0, lower, h))
-        A = A + jnp.einsum("tkd,tke->tde", Ju, Ju)
-        b = b + jnp.einsum("tkd,tk->td", Ju, jnp.einsum("tke,te->tk", Ju, z) - ru)
+        rows = [fc.axis(up) * (lw * act)[..., None]]  # (T, K, D)
+        res = [lw * act * (h - jnp.where(act > 0, lower, h))]
+        if points.per_frame:
+            F = points.per_frame
+            wd = points.weight[ns:].reshape(T, F, 3)
+            rows.append((Jp[ns:].reshape(T, F, 3, D) * wd[..., None]).reshape(T, 3 * F, D))
+            res.append((r[ns:].reshape(T, F, 3) * wd).reshape(T, 3 * F))
+        Jf, rf = jnp.concatenate(rows, axis=1), jnp.concatenate(res, axis=1)
+        A = jnp.einsum("trd,tre->tde", Jf, Jf)
+        b = jnp.einsum("trd,tr->td", Jf, jnp.einsum("tre,te->tr", Jf, z) - rf)
+        if ns:
+            Js, ws = Jp[:ns], w2[:ns]
+            zs = z[points.frame[:ns]]
+            A_p = jnp.einsum("pcd,pc,pce->pde", Js, ws, Js)
+            b_p = jnp.einsum("pcd,pc,pc->pd", Js, ws, jnp.einsum("pce,pe->pc", Js, zs) - r[:ns])
+            A = A.at[points.frame[:ns]].add(A_p)
+            b = b.at[points.frame[:ns]].add(b_p)
         H0, H1, H2 = bands
-        A = A * (var_ch[:, None] * var_ch[None, :])
-        z_star, fac = _normal_solve(H0 + A, H1, H2, anchor, held, delta, -(b * var_ch), active)
-        return z_star - delta, fac
+        z_star, fac, ok = _normal_solve(
+            H0, A, H1, H2, var_ch, anchor, held, delta, -(b * var_ch), active
+        )
+        return z_star - delta, fac, ok
 
     keep_rows = (~held)[:, None].astype(dt) * var_ch[None, :]
     grad_of = jax.grad(cost_of)
@@ -289,10 +329,13 @@ def solve_banded(
 
     def fresh_then_chords(s: _Iterate) -> _Iterate:
         """One fresh Gauss–Newton step, then chord steps with its factor while they work."""
-        z_gn, fac = gn_step(s.z, s.shift, ~s.finished)
-        s = advance(s, z_gn, fac.ok, jnp.zeros((), dt), full=True)
+        z_gn, fac, ok = gn_step(s.z, s.shift, ~s.finished)
+        s = advance(s, z_gn, ok, jnp.zeros((), dt), full=True)
         if not chord:
             return s
+        # a single-precision factor that failed (the step was solved in double precision)
+        # is not used: the next step is a fresh one
+        s = eqx.tree_at(lambda s: s.fresh, s, s.fresh | ~fac.ok)
 
         def chord_step(s: _Iterate) -> _Iterate:
             # z − B₀⁻¹ g with the factor B₀ of the last fresh step (a loop invariant: the
@@ -345,20 +388,25 @@ class _Iterate(eqx.Module):
 
 
 def _no_factor(T: int, D: int, dt) -> BlockPentaCholesky:
-    """A zero factor (the loop carry before the first factorisation, a skipped one)."""
-    z = jnp.zeros((T, D, D), dt)
+    """A zero factor (a skipped factorisation) of a problem in precision ``dt``."""
+    z = jnp.zeros((T, D, D), factor_dtype(dt))
     return BlockPentaCholesky(
         Linv=z, L1=z, L2=z, ok=jnp.asarray(True), first_bad=jnp.asarray(-1, jnp.int32)
     )
 
 
 @jax.custom_batching.custom_vmap
-def _normal_solve(H0, H1, H2, anchor, held, delta, linear, active):
-    """The Gauss–Newton normal equations' solution and their factor (its ``ok``: the status).
+def _normal_solve(H0, A, H1, H2, var_ch, anchor, held, delta, linear, active):
+    """The Gauss–Newton normal equations' solution, their factor and the step's status.
 
-    The matrix is ``H + diag(anchor²)`` over the free frames, with an identity block at each
-    held frame, whose displacement is ``delta``; the right-hand side is ``−(linear + H δ)``.
-    Factorised with one frame per block (:func:`~mtex_jax.linalg.block_penta_cholesky`).
+    The matrix is ``H + M A M + diag(anchor²)`` over the free frames (``A``: the
+    constraints' block-diagonal ``Σ JᵀW²J``, ``M = diag(var_ch)``), with an identity block
+    at each held frame, whose displacement is ``delta``; the right-hand side is
+    ``−(linear + H δ)``. Factorised with one frame per block
+    (:func:`~mtex_jax.linalg.block_penta_factor`, each block formed inside the recursion, so
+    the matrix is never stored), by :func:`step_solve`. Returns ``(z, factor, ok)``: the
+    factor (for chord steps) may be of lower precision than the problem, and ``ok`` says
+    that the step was solved.
 
     ``active`` (a bool) says whether the caller will use the result: a motion of a ``vmap``
     batch that has already stopped (or takes a chord step) still runs the loop body until
@@ -376,37 +424,54 @@ def _normal_solve(H0, H1, H2, anchor, held, delta, linear, active):
     dt = H0.dtype
     f = (~held).astype(dt)
     b = linear + band_matvec((H0, H1, H2), delta)
-    A0 = jnp.where(held[:, None, None], jnp.eye(D, dtype=dt), sym(H0) + jnp.diag(anchor**2))
-    A1 = H1 * (f * jnp.concatenate([jnp.zeros((1,), dt), f[:-1]]))[:, None, None]
-    A2 = H2 * (f * jnp.concatenate([jnp.zeros((2,), dt), f[:-2]]))[:, None, None]
-    fac = _step_factor(A0, A1, A2)
-    z_star = block_penta_solve(fac, -b * f[:, None]) * f[:, None]
-    return z_star + delta, fac
+    f1 = jnp.concatenate([jnp.zeros((1,), dt), f[:-1]])
+    f2 = jnp.concatenate([jnp.zeros((2,), dt), f[:-2]])
+    mm = var_ch[:, None] * var_ch[None, :]
+    eye, ridge = jnp.eye(D, dtype=dt), jnp.diag(anchor**2)
+
+    def blocks(x):
+        h0, a, h1, h2, held_t, f_t, f_1, f_2 = x
+        a0 = jnp.where(held_t, eye, sym(h0 + a * mm) + ridge)
+        return a0, h1 * (f_t * f_1), h2 * (f_t * f_2)
+
+    z_star, fac, ok = step_solve(blocks, (H0, A, H1, H2, held, f, f1, f2), -b * f[:, None])
+    return z_star * f[:, None] + delta, fac, ok
 
 
-def _step_factor(A0: Array, A1: Array, A2: Array) -> BlockPentaCholesky:
-    """The normal matrix's factor, computed in single precision for a double-precision solve.
+def factor_dtype(dtype) -> jnp.dtype:
+    """The precision of a step's factor: single for a double-precision problem."""
+    return jnp.dtype(jnp.float32 if jnp.dtype(dtype) == jnp.float64 else dtype)
+
+
+def step_solve(blocks, xs, rhs: Array) -> tuple[Array, BlockPentaCholesky, Array]:
+    """A Gauss–Newton step's solve: the normal matrix (blocks ``blocks(x_t)`` of the frames'
+    slices of ``xs``, :func:`~mtex_jax.linalg.block_penta_factor`) factored in single
+    precision for a double-precision problem, the substitution in the problem's precision.
 
     The factor only chooses the step's direction: each step is accepted on the cost, computed
     in the problem's precision, and the iteration stops where the gradient does, so an
     inexact factor changes the path, not the solution (an inexact Gauss–Newton step). In
     single precision the factorisation takes about 35 % less time (measured, 1,280 frames of
-    54 channels). If it fails (a matrix too ill-conditioned for single precision), the
-    factorisation is done again in the problem's precision."""
-    dt = A0.dtype
-    if dt != jnp.float64:
-        return block_penta_cholesky(A0, A1, A2)
-    lo = block_penta_cholesky(
-        A0.astype(jnp.float32), A1.astype(jnp.float32), A2.astype(jnp.float32)
-    )
+    54 channels); each block is rounded inside the recursion and the factor stays in single
+    precision (the substitution converts it block by block), so no converted copy of the
+    matrix or the factor is made. If it fails (a matrix too ill-conditioned for single
+    precision), the step is factored and solved again in the problem's precision; the
+    returned factor then reports ``ok = False`` and is not used for chord steps.
 
-    def up(f: BlockPentaCholesky) -> BlockPentaCholesky:
-        cast = lambda a: a.astype(dt)
-        return BlockPentaCholesky(
-            Linv=cast(f.Linv), L1=cast(f.L1), L2=cast(f.L2), ok=f.ok, first_bad=f.first_bad
-        )
+    Returns:
+        ``(x, factor, ok)``: the solution, the single-precision factor, whether either
+        factorisation succeeded.
+    """
+    lo = block_penta_factor(blocks, xs, dtype=factor_dtype(rhs.dtype))
+    if lo.Linv.dtype == rhs.dtype:
+        return block_penta_solve(lo, rhs), lo, lo.ok
 
-    return lax.cond(lo.ok, lambda: up(lo), lambda: block_penta_cholesky(A0, A1, A2))
+    def exact() -> tuple[Array, Array]:
+        hi = block_penta_factor(blocks, xs)
+        return block_penta_solve(hi, rhs), hi.ok
+
+    x, ok = lax.cond(lo.ok, lambda: (block_penta_solve(lo, rhs), lo.ok), exact)
+    return x, lo, ok
 
 
 @_normal_solve.def_vmap
@@ -419,16 +484,12 @@ def _normal_solve_vmap(axis_size: int, in_batched, *args):
     def one(xs):
         *a, active = xs
         T, D = a[-1].shape
-        skip = lambda *_: (jnp.zeros_like(a[-1]), _no_factor(T, D, a[-1].dtype))
+        skip = lambda *_: (
+            jnp.zeros_like(a[-1]),
+            _no_factor(T, D, a[-1].dtype),
+            jnp.asarray(True),
+        )
         return lax.cond(active, lambda *b: _normal_solve(*b, active), skip, *a)
 
     out = lax.map(one, full)
     return out, jax.tree.map(lambda _: True, out)
-
-
-def _band_quad(bands, anchor: Array, v: Array) -> Array:
-    """``vᵀ (H + diag(anchor²)) v`` for the symmetric block band."""
-    H0, H1, H2 = bands
-    q = jnp.einsum("td,tde,te->", v, H0, v) + jnp.sum((anchor * v) ** 2)
-    q = q + 2.0 * jnp.einsum("td,tde,te->", v[1:], H1[1:], v[:-1])
-    return q + 2.0 * jnp.einsum("td,tde,te->", v[2:], H2[2:], v[:-2])

@@ -91,17 +91,36 @@ def pad_inputs(
     )
     if extra is None:
         return Yp, segp, consp, None
-    m = int(np.shape(extra.frame)[0])
-    per = m // T if T else 0  # targets per frame (clean: one per foot and frame)
-    size = per * n if per * T == m else m
-    extrap = PointTargets(
-        slot=_pad(extra.slot, size, 0),
-        frame=_pad(extra.frame, size, 0),
-        target=_pad(extra.target, size, 0.0),
-        weight=_pad(extra.weight, size, 0.0),
-        exact=_pad(extra.exact, size, False),
+    return Yp, segp, consp, pad_points(extra, T, n)
+
+
+def pad_points(points: PointTargets, T: int, n: int) -> PointTargets:
+    """Point targets of a ``T``-frame edit padded to ``n`` frames: the sparse targets kept,
+    the frame-major ones (:class:`~mtex_jax.edit._banded.PointTargets`) given weightless
+    targets at each padding frame (same joints), so they stay frame-major."""
+    F, s = points.per_frame, points.sparse_count
+    if not F:
+        return points
+    if int(np.shape(points.frame)[0]) - s != T * F:
+        raise ValueError(f"pad_points: the frame-major targets do not cover {T} frames")
+    slots = np.asarray(points.slot)[s : s + F]
+    head = lambda x: np.asarray(x)[:s]
+
+    def tail(x: Any, fill: Any) -> np.ndarray:
+        x = np.asarray(x)
+        return np.concatenate([x[s:], np.full(((n - T) * F, *x.shape[1:]), fill, x.dtype)])
+
+    return PointTargets(
+        slot=as_array(np.concatenate([head(points.slot), np.tile(slots, n)]).astype(np.int32)),
+        frame=as_array(
+            np.concatenate([head(points.frame), np.repeat(np.arange(n), F)]).astype(np.int32)
+        ),
+        target=as_array(np.concatenate([head(points.target), tail(points.target, 0.0)])),
+        weight=as_array(np.concatenate([head(points.weight), tail(points.weight, 0.0)])),
+        exact=as_array(np.concatenate([head(points.exact), tail(points.exact, False)])),
+        n_sparse=s,
+        per_frame=F,
     )
-    return Yp, segp, consp, extrap
 
 
 def solve_gn_bucketed(
@@ -123,9 +142,9 @@ def solve_gn_bucketed(
     Args:
         fm, tx, seg, Y, start_position, start_heading, cons, weights: as for
             :func:`~mtex_jax.edit._gn.solve_edit_gn`, for one motion of ``T`` frames.
-        extra: further point targets; a list of one target per frame and foot (``T·F``
-            entries, as :func:`~mtex_jax.edit.clean` makes) is padded with weightless
-            targets, any other list is kept as it is.
+        extra: further point targets; frame-major ones (one per frame and foot, as
+            :func:`~mtex_jax.edit.clean` makes) are padded with weightless targets
+            (:func:`pad_points`), sparse ones kept as they are.
         **kw: the keyword arguments of :func:`~mtex_jax.edit._gn.solve_edit_gn`.
 
     Returns:

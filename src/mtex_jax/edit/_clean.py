@@ -364,6 +364,8 @@ def clean(
             target=as_array(tgt.reshape(T * F, 3).astype(dt)),
             weight=as_array(np.repeat(swing.reshape(-1, 1) * swing_weight, 3, 1).astype(dt)),
             exact=as_array(np.zeros(T * F, bool)),
+            n_sparse=0,
+            per_frame=F,
         )
         tx = WhitenedTextons.of(texture.textons, Y.dtype)
         res = solve_gn_bucketed(

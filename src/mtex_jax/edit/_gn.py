@@ -34,13 +34,34 @@ __all__ = ["join_points", "solve_edit_gn"]
 
 
 def join_points(a: PointTargets, b: PointTargets) -> PointTargets:
-    """Both sets of point targets as one."""
+    """Both sets of point targets as one: the sparse targets of both first, then the
+    frame-major ones of both, merged frame by frame (both must cover the same frames)."""
+    sa, sb = a.sparse_count, b.sparse_count
+    fields = lambda p: (p.slot, p.frame, p.target, p.weight, p.exact)
+    sparse = [jnp.concatenate([x[:sa], y[:sb]]) for x, y in zip(fields(a), fields(b), strict=True)]
+    dense = [(p, p.per_frame) for p in (a, b) if p.per_frame]
+    if not dense:
+        slot, frame, target, weight, exact = sparse
+        return PointTargets(slot=slot, frame=frame, target=target, weight=weight, exact=exact)
+    T = {(int(jnp.shape(p.frame)[0]) - p.sparse_count) // F for p, F in dense}
+    if len(T) != 1:
+        raise ValueError("join_points: the frame-major targets cover different frames")
+    (n,) = T
+    per = lambda p, F, x: x[p.sparse_count :].reshape(n, F, *x.shape[1:])
+    parts = [jnp.concatenate([per(p, F, fields(p)[i]) for p, F in dense], axis=1) for i in range(5)]
+    parts = [x.reshape(-1, *x.shape[2:]) for x in parts]
+    F = sum(F for _, F in dense)
+    slot, frame, target, weight, exact = (
+        jnp.concatenate([s_, d]) for s_, d in zip(sparse, parts, strict=True)
+    )
     return PointTargets(
-        slot=jnp.concatenate([a.slot, b.slot]),
-        frame=jnp.concatenate([a.frame, b.frame]),
-        target=jnp.concatenate([a.target, b.target]),
-        weight=jnp.concatenate([a.weight, b.weight]),
-        exact=jnp.concatenate([a.exact, b.exact]),
+        slot=slot,
+        frame=frame,
+        target=target,
+        weight=weight,
+        exact=exact,
+        n_sparse=int(sparse[0].shape[0]),
+        per_frame=F,
     )
 
 
@@ -88,6 +109,8 @@ def constraint_points(
             target=tgt.reshape(T * F, 3),
             weight=(on[..., None] * wvec).reshape(T * F, 3),
             exact=on.reshape(T * F),
+            n_sparse=0,
+            per_frame=F,
         )
         pos = join_points(pos, plants)
     lower = jnp.where(cons.floor_on, cons.floor, -jnp.inf) * jnp.ones((T, K), dt)
@@ -154,6 +177,7 @@ def solve_edit_gn(
         keep,
         n_valid,
         whiten=False,
+        residuals=False,
     )
     w, dt = prob.w, Y0.dtype
     T, D = Y0.shape
@@ -196,7 +220,7 @@ def solve_edit_gn(
     if roots is not None:
         Y, sp = apply_shift(fm, Y, sp, prob.sh, z[:, list(roots[0])])
     prob = eqx.tree_at(lambda p: p.sp, prob, sp)
-    return finish_banded(prob, Y, z, sol.converged, sol.steps, sol.cost)
+    return finish_banded(prob, Y, z, sol.converged, sol.steps, sol.cost, pr)
 
 
 def root_channels(fm: FeatureMap) -> tuple[tuple[int, int], tuple[int, int]] | None:

@@ -48,7 +48,7 @@ from ._prior import (
     prior_residuals,
     smoothness_hessian,
 )
-from ._whiten import Whitening, whitening_each
+from ._whiten import Whitening, band_quad, whitening_each
 
 __all__ = ["EditResult", "bfgs_polish", "problem", "solve_edit"]
 
@@ -153,7 +153,7 @@ class _Problem(eqx.Module):
     seg: FrameSegments
     wh: Whitening | None  # None for the banded Gauss–Newton solver, which does not whiten
     Y0: Array
-    r0: tuple[Array, Array, Array]
+    r0: tuple[Array, Array, Array] | None  # None: the prior cost is measured on bands
     sp: Array
     sh: Array
     cons: Constraints
@@ -213,7 +213,7 @@ def _sq(tree: Any) -> Array:
     return 0.5 * jnp.sum(jnp.stack([jnp.sum(a * a) for a in jax.tree.leaves(tree)]))
 
 
-def _measure(prob: _Problem, Y: Array) -> dict[str, Array]:
+def _measure(prob: _Problem, Y: Array, prior_cost: Array | None = None) -> dict[str, Array]:
     c = prob.cons
     P = prob.positions(Y)
     up, h0, h1 = ground_axes(prob.fm.skeleton.up_axis)
@@ -226,14 +226,19 @@ def _measure(prob: _Problem, Y: Array) -> dict[str, Array]:
     own = (jnp.arange(P.shape[0]) < prob.n_valid)[:, None]
     depth = jnp.max(jnp.where(own, jnp.maximum(c.floor - P[:, list(prob.keep), up], 0.0), 0.0))
     depth = jnp.where(c.floor_on, depth, 0.0)
-    pri = prior_residuals(prob.tx, prob.seg, Y, prob.n_valid)
+    if prior_cost is None:
+        if prob.r0 is None:
+            raise ValueError("this edit problem was built without its prior residuals")
+        pri = prior_residuals(prob.tx, prob.seg, Y, prob.n_valid)
+        d = tuple(prob.w.prior * (a - b) for a, b in zip(pri, prob.r0, strict=True))
+        prior_cost = _sq(d)
     return dict(
         position_error=jnp.where(c.active, pe, 0.0),
         velocity_error=jnp.where(c.vel_active, ve, 0.0),
         plant_slide=jnp.max(jnp.where(c.plant, speed, 0.0), initial=0.0),
         plant_height_error=jnp.max(jnp.where(c.plant, herr, 0.0), initial=0.0),
         floor_depth=depth,
-        prior_cost=_sq(tuple(prob.w.prior * (a - b) for a, b in zip(pri, prob.r0, strict=True))),
+        prior_cost=prior_cost,
     )
 
 
@@ -257,7 +262,19 @@ def sub_skeleton(skeleton: Skeleton, joints: tuple[int, ...]) -> tuple[Skeleton,
 
 
 def problem(
-    fm, tx, seg, Y0, sp, sh, cons, w, relative: bool, keep, n_valid: Any = None, whiten=True
+    fm,
+    tx,
+    seg,
+    Y0,
+    sp,
+    sh,
+    cons,
+    w,
+    relative: bool,
+    keep,
+    n_valid: Any = None,
+    whiten: bool = True,
+    residuals: bool = True,
 ) -> _Problem:
     """The residual form of one edit (whitening factored, plant heights resolved).
 
@@ -265,16 +282,24 @@ def problem(
     frames must be held by ``cons.pose_mask``; their prior and floor terms are left out).
     ``whiten=False``: no whitening (the banded Gauss–Newton solver has its own normal
     equations; leaving it out keeps a block Cholesky out of its program).
+    ``residuals=False`` (relative problems only): the prior's residuals at ``Y0`` are not
+    computed; the caller measures the prior cost on the prior's bands
+    (:func:`finish_banded`), which needs no per-frame gather of the textons' matrices.
     """
     dtype = Y0.dtype
     T, D = Y0.shape
     n_valid = jnp.asarray(T if n_valid is None else n_valid, jnp.int32)
     sub, keep = sub_skeleton(fm.skeleton, keep)
     w = jax.tree.map(lambda a: jnp.asarray(a, dtype), w)
-    r0, pull = jax.vjp(lambda y: prior_residuals(tx, seg, y, n_valid), Y0)
-    if relative:
+    if not residuals:
+        if not relative:
+            raise ValueError("an absolute edit problem needs the prior residuals")
+        r0, linear = None, jnp.zeros_like(Y0)
+    elif relative:
+        r0 = prior_residuals(tx, seg, Y0, n_valid)
         linear = jnp.zeros_like(Y0)
     else:
+        r0, pull = jax.vjp(lambda y: prior_residuals(tx, seg, y, n_valid), Y0)
         (linear,) = pull(r0)
         linear = (w.prior**2) * linear
         r0 = (jnp.zeros_like(r0[0]), jnp.zeros_like(r0[1]), jnp.zeros_like(r0[2]))
@@ -402,12 +427,25 @@ def finish(prob: _Problem, z, shift, ok, steps, used_bfgs) -> EditResult:
 
 
 def finish_banded(
-    prob: _Problem, Y: Array, z: Array, ok: Array, steps: Array, cost: Array
+    prob: _Problem,
+    Y: Array,
+    z: Array,
+    ok: Array,
+    steps: Array,
+    cost: Array,
+    prior_bands: tuple[Array, Array, Array] | None = None,
 ) -> EditResult:
     """Measure a banded Gauss–Newton solution ``Y`` (``z``: the solver's variables; the start
-    position is ``prob.sp``)."""
+    position is ``prob.sp``).
+
+    ``prior_bands``: the prior's Hessian bands (:func:`prior_hessian`); the prior residuals
+    are affine in ``Y``, so the prior cost ``½‖w (r(Y) − r(Y₀))‖²`` is the quadratic form
+    ``½ w² uᵀ (RᵀR) u`` of the change ``u = Y − Y₀``. ``None``: from the residuals."""
     finite = jnp.all(jnp.isfinite(Y)) & jnp.all(jnp.isfinite(z))
     Y = jnp.where(finite, Y, prob.Y0)
+    prior_cost = None
+    if prior_bands is not None:
+        prior_cost = 0.5 * prob.w.prior**2 * band_quad(prior_bands, Y - prob.Y0)
     return EditResult(
         start_position=jnp.where(finite, prob.sp, jnp.zeros_like(prob.sp)),
         Y=Y,
@@ -417,7 +455,7 @@ def finish_banded(
         cost=jnp.where(finite, cost, jnp.inf),
         used_bfgs=jnp.asarray(False),
         finite=finite,
-        **_measure(prob, Y),
+        **_measure(prob, Y, prior_cost),
     )
 
 

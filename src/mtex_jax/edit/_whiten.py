@@ -26,7 +26,7 @@ from jaxtyping import Array, Float
 
 from ..texture import BlockTridiagCholesky, block_tridiag_cholesky, block_tridiag_solve
 
-__all__ = ["Whitening", "band_matvec", "whitening", "whitening_each"]
+__all__ = ["Whitening", "band_matvec", "band_quad", "whitening", "whitening_each"]
 
 
 class Whitening(eqx.Module):
@@ -113,15 +113,33 @@ def whitening(
     )
 
 
+def _down(v: Array, n: int) -> Array:
+    """``v`` moved ``n`` rows later (``out[t] = v[t − n]``, zero rows first)."""
+    return jnp.concatenate([jnp.zeros((n, *v.shape[1:]), v.dtype), v[:-n]], axis=0)
+
+
+def _up(v: Array, n: int) -> Array:
+    """``v`` moved ``n`` rows earlier (``out[t] = v[t + n]``, zero rows last)."""
+    return jnp.concatenate([v[n:], jnp.zeros((n, *v.shape[1:]), v.dtype)], axis=0)
+
+
 def band_matvec(bands: tuple[Array, Array, Array], v: Float[Array, "T D"]) -> Float[Array, "T D"]:
-    """``H v`` for the symmetric block band ``(H0, H1, H2)`` (see ``prior_hessian``)."""
+    """``H v`` for the symmetric block band ``(H0, H1, H2)`` (see ``prior_hessian``; the
+    blocks ``H1[0]``, ``H2[0]``, ``H2[1]`` must be zero, as there). The vectors are shifted,
+    not the ``(T, D, D)`` bands, so no copy of a band is made."""
     H0, H1, H2 = bands
     mv = lambda A, x: jnp.einsum("tde,te->td", A, x)
     mtv = lambda A, x: jnp.einsum("ted,te->td", A, x)
-    out = mv(H0, v)
-    out = out.at[1:].add(mv(H1[1:], v[:-1])).at[2:].add(mv(H2[2:], v[:-2]))
-    out = out.at[:-1].add(mtv(H1[1:], v[1:])).at[:-2].add(mtv(H2[2:], v[2:]))
-    return out
+    out = mv(H0, v) + mv(H1, _down(v, 1)) + mv(H2, _down(v, 2))
+    return out + _up(mtv(H1, v), 1) + _up(mtv(H2, v), 2)
+
+
+def band_quad(bands: tuple[Array, Array, Array], v: Float[Array, "T D"]) -> Float[Array, ""]:
+    """``vᵀ H v`` for the symmetric block band ``(H0, H1, H2)`` (as :func:`band_matvec`)."""
+    H0, H1, H2 = bands
+    q = jnp.einsum("td,tde,te->", v, H0, v)
+    q = q + 2.0 * jnp.einsum("td,tde,te->", v, H1, _down(v, 1))
+    return q + 2.0 * jnp.einsum("td,tde,te->", v, H2, _down(v, 2))
 
 
 # :func:`whitening`, factorised one motion after the other under ``vmap`` (``lax.map``): XLA's

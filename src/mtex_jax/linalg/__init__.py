@@ -13,6 +13,7 @@ from ._banded import (
 from ._blockpenta import (
     BlockPentaCholesky as BlockPentaCholesky,
     block_penta_cholesky as block_penta_cholesky,
+    block_penta_factor as block_penta_factor,
     block_penta_solve as block_penta_solve,
 )
 from ._blocktridiag import (
@@ -32,6 +33,7 @@ __all__ = [
     "block_banded_solve",
     "block_banded_solve_status",
     "block_penta_cholesky",
+    "block_penta_factor",
     "block_penta_solve",
     "block_tridiag_cholesky",
     "block_tridiag_solve",
