@@ -242,7 +242,7 @@ def clean(
     move_root: bool = True,
     root_smooth: float = 1000.0,
     max_steps: int | None = None,
-    rtol: float = 1e-3,
+    rtol: float = 1e-2,
     cg_steps: int = 1000,
     loglik: bool = True,
 ) -> CleanResult:
@@ -280,6 +280,10 @@ def clean(
         rtol: ``"gn"`` stops (and reports convergence) when a step lowers the cost by less
             than this fraction (or moves no variable by more than ``1e-4``). One round, no
             multipliers: plants are penalties (``EditWeights.plant``), measured in the result.
+            ``1e-2`` rather than ``1e-3``: on two training clips and three syntheses of 20 s
+            it saved 0–3 of 6–11 steps, the final cost rose by at most 0.4 %, the skating
+            median was unchanged (to 0.1 mm/s) and its 95th percentile moved by at most
+            0.1 mm/s.
         cg_steps: conjugate-gradient steps per Levenberg–Marquardt step (``"lm"`` only).
         loglik: also compute the log-likelihood per frame before and after (a forward pass
             each; ``False`` reports NaN).
