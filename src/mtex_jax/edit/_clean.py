@@ -392,6 +392,8 @@ def clean(
         )
     out = fm.decode(res.Y, res.start_position, sh)
     nan = float("nan")
+    # before and after scored in one call: the two motions packed as one sequence list
+    ll_before, ll_after = texture.log_likelihood([Y, res.Y], mean=True) if loglik else (nan, nan)
     return CleanResult(
         motion=out,
         Y=res.Y,
@@ -401,8 +403,8 @@ def clean(
         skating_after=contacts.skating(out),
         penetration_before=contacts.penetration(raw),
         penetration_after=contacts.penetration(out),
-        loglik_before=texture.log_likelihood(Y, mean=True) if loglik else nan,
-        loglik_after=texture.log_likelihood(res.Y, mean=True) if loglik else nan,
+        loglik_before=float(ll_before),
+        loglik_after=float(ll_after),
     )
 
 
