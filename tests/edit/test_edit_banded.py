@@ -425,3 +425,22 @@ def test_frame_major_targets_solve_as_sparse_ones_and_join_per_frame():
     # the joined set solves as the same targets all assembled one by one
     flat = PointTargets(slot=j.slot, frame=j.frame, target=j.target, weight=j.weight, exact=j.exact)
     np.testing.assert_allclose(np.asarray(run(j).z), np.asarray(run(flat).z), atol=1e-6)
+
+
+def test_contact_plants_rules_match_the_contact_model(syn, contacts):
+    m = syn.motion
+    ((h, _),) = contacts.heights_and_speeds(m)
+    H = contacts.height_threshold
+    low, plants = E.contact_plants(contacts, m, rule="low")
+    np.testing.assert_array_equal(low, (h[:-1] < H) & (h[1:] < H))
+    slow, _ = E.contact_plants(contacts, m, rule="low_and_slow")
+    np.testing.assert_array_equal(slow, contacts.labels(m))
+    assert slow.sum() <= low.sum()
+    # every plant is a run of contact steps of its foot, at a height within [floor, H_f]
+    feet = list(contacts.feet)
+    for foot, a, b, height in plants:
+        k = feet.index(foot)
+        assert low[a:b, k].all()
+        assert contacts.floor - 1e-12 <= height <= H[k] + 1e-12
+    with pytest.raises(ValueError, match="rule"):
+        E.contact_plants(contacts, m, rule="fast")

@@ -97,13 +97,20 @@ def contact_plants(
     Returns:
         ``labels (T − 1, F)`` bool and ``[(foot joint, first frame, last frame, height)]``.
     """
+    ((h, s),) = contacts.heights_and_speeds(motion, "clean")
+    return _plants_of(contacts, h, s, min_steps=min_steps, rule=rule, max_gap=max_gap)
+
+
+def _plants_of(
+    contacts: ContactModel, h: np.ndarray, s: np.ndarray, *, min_steps: int, rule: str, max_gap: int
+) -> tuple[np.ndarray, list[tuple[int, int, int, float]]]:
+    """:func:`contact_plants` from the foot heights ``(T, F)`` and step speeds ``(T − 1, F)``."""
     if rule not in ("low", "low_and_slow"):
         raise ValueError(f"rule must be 'low' or 'low_and_slow', got {rule!r}")
-    ((h, _),) = contacts.heights_and_speeds(motion, "clean")
     H = contacts.height_threshold
     labels = (h[:-1] < H) & (h[1:] < H)
-    if rule == "low_and_slow":
-        labels = contacts.labels(motion)
+    if rule == "low_and_slow":  # ContactModel.labels: low at both ends and slow
+        labels = labels & (s < contacts.speed_threshold)
     plants = []
     if isinstance(max_gap, bool) or not isinstance(max_gap, int) or max_gap < 0:
         raise ValueError(f"max_gap must be an integer >= 0, got {max_gap!r}")
@@ -317,10 +324,10 @@ def clean(
         raise ValueError(f"motion: at least 3 frames are needed, got {raw.n_frames}")
     Y, sp, sh = observations_of(texture, motion, None, None)
     gap = round(0.1 * float(fm.fps)) if max_gap is None else max_gap
-    labels, plants = contact_plants(contacts, raw, min_steps=min_steps, rule=rule, max_gap=gap)
+    ((h, s),) = contacts.heights_and_speeds(raw, "clean")
+    labels, plants = _plants_of(contacts, h, s, min_steps=min_steps, rule=rule, max_gap=gap)
     # swing feet stay off the ground: a frame of no planted step whose foot was above its
     # height threshold keeps it above (one-sided)
-    ((h, _),) = contacts.heights_and_speeds(raw, "clean")
     in_contact = np.zeros_like(h, bool)
     in_contact[:-1] |= labels
     in_contact[1:] |= labels
@@ -336,7 +343,8 @@ def clean(
         lift=lift,
     )
     cons = check_constraints(cons, Y, fm)
-    seg = segments_of(texture, motion)
+    # a Synthesis carries its segmentation; a Motion is segmented from Y (not encoded again)
+    seg = segments_of(texture, motion if isinstance(motion, Synthesis) else Y)
     w = clean_weights(solver) if weights is None else weights
     if solver == "lm":
         res = edit(
