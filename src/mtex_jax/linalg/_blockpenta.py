@@ -92,7 +92,9 @@ def block_penta_cholesky(
     return block_penta_factor(lambda x: x, (A0, A1, A2), dtype=A0.dtype if dtype is None else dtype)
 
 
-def block_penta_factor(blocks: Callable[[Any], tuple[Array, Array, Array]], xs: Any, *, dtype=None):
+def block_penta_factor(
+    blocks: Callable[[Any], tuple[Array, Array, Array]], xs: Any, *, dtype=None
+) -> BlockPentaCholesky:
     """:func:`block_penta_cholesky` of a matrix whose blocks are formed frame by frame.
 
     ``blocks(x_t) = (A_{t,t}, A_{t,t−1}, A_{t,t−2})`` from the ``t``-th slices of the arrays
