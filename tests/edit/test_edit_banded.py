@@ -17,7 +17,7 @@ import edit_setup
 import mtex_jax as mj
 from cpu_devices import run_with_cpu_devices
 from mtex_jax import edit as E
-from mtex_jax.edit._banded import PointTargets, solve_banded, step_solve
+from mtex_jax.edit._banded import PointTargets, solve_banded
 from mtex_jax.edit._fk import fk_positions
 from mtex_jax.edit._gn import join_points
 from mtex_jax.edit._jacobians import (
@@ -27,6 +27,7 @@ from mtex_jax.edit._jacobians import (
     kept_positions,
     root_free_channels,
 )
+from mtex_jax.edit._normal import step_solve
 from mtex_jax.edit._prior import WhitenedTextons, prior_residuals
 from mtex_jax.edit._solve import sub_skeleton
 from mtex_jax.edit._whiten import band_matvec, band_quad
@@ -444,3 +445,86 @@ def test_contact_plants_rules_match_the_contact_model(syn, contacts):
         assert contacts.floor - 1e-12 <= height <= H[k] + 1e-12
     with pytest.raises(ValueError, match="rule"):
         E.contact_plants(contacts, m, rule="fast")
+
+
+def test_exact_lower_rounds_meet_the_bound_as_a_constrained_solve():
+    """With ``exact_lower`` the multiplier rounds solve the bound-constrained problem: the
+    result equals scipy's SLSQP minimum of the same objective with ``h ≥ lower`` as hard
+    constraints (the point targets stay penalties), where the plain penalty leaves the bound
+    violated."""
+    from scipy.optimize import minimize
+
+    rng = np.random.default_rng(5)
+    T, D, K, F = 10, 4, 3, 1
+    W = jnp.asarray(rng.standard_normal((K, 3, D)) / np.sqrt(D))
+    fn = lambda Y: jnp.tanh(jnp.einsum("kcd,td->tkc", W, Y))
+    Y0 = jnp.asarray(0.4 * rng.standard_normal((T, D)))
+    eye = np.broadcast_to(np.eye(D), (T, D, D))
+    H1, H2 = -0.5 * eye.copy(), 0.1 * eye.copy()
+    H1[0] = H2[0] = H2[1] = 0.0  # the band layout of prior_hessian
+    A0 = 2.0 * eye
+    bands = (jnp.asarray(A0), jnp.asarray(H1), jnp.asarray(H2))
+    anchor = jnp.ones(D)
+    args = (anchor, jnp.ones(D), jnp.zeros(T, bool), Y0)
+    pts = _toy_points(T, F, K, np.random.default_rng(9), per_frame=True)
+    h0 = np.asarray(fn(Y0))[..., 2]
+    lower = jnp.asarray(np.where(h0 < np.median(h0), np.median(h0), -np.inf))  # half violated
+    mask = jnp.isfinite(lower)
+    lw = 10.0
+
+    def run(**kw):
+        return solve_banded(fn, Y0, bands, *args, pts, lower, lw, 2, chord=False, **kw)
+
+    al = run(
+        rounds=12,
+        rtol=1e-12,
+        early_rtol=1e-12,
+        max_steps=30,
+        exact_lower=mask,
+        exact_points=False,
+        lower_tol=1e-9,
+    )
+    pen = run(rounds=1, rtol=1e-12, max_steps=30)
+    M = _dense_penta(A0, H1, H2) + np.eye(T * D)  # prior band + unit anchor
+
+    def f(z):
+        P = fn(Y0 + z.reshape(T, D))
+        r = P[pts.frame, pts.slot] - pts.target
+        return 0.5 * (z @ M @ z + jnp.sum(pts.weight**2 * r * r))
+
+    fj = jax.jit(jax.value_and_grad(lambda z: f(z)))
+    hz = jax.jit(lambda z: fn(Y0 + z.reshape(T, D))[..., 2][np.asarray(mask)])
+    hj = jax.jit(jax.jacobian(lambda z: fn(Y0 + z.reshape(T, D))[..., 2][np.asarray(mask)]))
+    lo = np.asarray(lower)[np.asarray(mask)]
+    ref = minimize(
+        lambda z: tuple(np.asarray(v, np.float64) for v in fj(jnp.asarray(z))),
+        np.zeros(T * D),
+        jac=True,
+        method="SLSQP",
+        constraints=[
+            {
+                "type": "ineq",
+                "fun": lambda z: np.asarray(hz(jnp.asarray(z))) - lo,
+                "jac": lambda z: np.asarray(hj(jnp.asarray(z))),
+            }
+        ],
+        options={"ftol": 1e-14, "maxiter": 500},
+    )
+    assert ref.success, ref.message
+    h_al = np.asarray(fn(Y0 + al.z))[..., 2]
+    h_pen = np.asarray(fn(Y0 + pen.z))[..., 2]
+    assert np.max(np.asarray(lower) - h_pen) > 0.05  # the penalty alone leaves it violated
+    assert np.max(np.asarray(lower) - h_al) < 1e-7
+    np.testing.assert_allclose(np.asarray(al.z).ravel(), ref.x, atol=1e-5)
+    # bounds met to lower_tol after the first round: no further round (the penalty's solve)
+    met = run(
+        rounds=12,
+        rtol=1e-12,
+        early_rtol=1e-12,
+        max_steps=30,
+        exact_lower=mask,
+        exact_points=False,
+        lower_tol=1.0,
+    )
+    assert int(met.steps) == int(pen.steps)
+    np.testing.assert_array_equal(np.asarray(met.z), np.asarray(pen.z))

@@ -140,13 +140,15 @@ def test_cli_synth_clean_needs_no_contact_file(tex, tmp_path, capsys, monkeypatc
 
 
 @pytest.mark.slow  # about 60 s on 2 cores without the compilation cache (1,200 frames cleaned)
-def test_cleaned_synthesis_stays_above_the_training_floor(tex):
+@pytest.mark.parametrize("seed", [0, 1, 4])
+def test_cleaned_synthesis_stays_above_the_training_floor(tex, seed):
     """Issue 43 acceptance: ``synthesize(key, tex, n_frames=1200, clean=True)`` with no other
     argument, on a texture learned by ``learn`` on a non-CMU skeleton, has no frame with a foot
-    more than 1 cm below the training floor."""
-    syn = E.synthesize(jax.random.key(0), tex, n_frames=1200, clean=True)
+    more than 1 cm below the training floor. Seeds 1 and 4 are two of the three of 0–7 whose
+    floor, as a plain penalty (``floor_rounds=1``), was left 43 and 10.5 mm deep."""
+    syn = E.synthesize(jax.random.key(seed), tex, n_frames=1200, clean=True)
     assert syn.motion is not None and syn.motion.n_frames == 1200
     pen = tex.contacts.penetration(syn.motion)
     assert pen.max_depth <= 0.01, pen
-    raw = mj.synthesize(jax.random.key(0), tex, n_frames=1200)
+    raw = mj.synthesize(jax.random.key(seed), tex, n_frames=1200)
     assert tex.contacts.penetration(raw.motion).max_depth > 0.05  # there was work to do

@@ -46,10 +46,11 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ..linalg import BlockPentaCholesky, block_penta_factor, block_penta_solve, sym
+from ..linalg import block_penta_solve
 from ._jacobians import Colouring, frame_columns
+from ._normal import normal_solve
 from ._prior import smoothness_hessian
-from ._whiten import band_matvec, band_quad
+from ._whiten import band_quad
 
 __all__ = ["BandedSolve", "PointTargets", "solve_banded"]
 
@@ -143,6 +144,10 @@ def solve_banded(
     rounds: int = 3,
     max_steps: int = 8,
     rtol: float = 1e-6,
+    early_rtol: float | None = None,
+    exact_lower: Bool[Array, "T K"] | None = None,
+    exact_points: bool = True,
+    lower_tol: float = 0.0,
     xtol: float = 1e-4,
     colouring: Colouring | None = None,
     chord: bool = True,
@@ -173,10 +178,19 @@ def solve_banded(
             the offset's smoothness stops there. ``None``: all ``T``.
         rounds: multiplier rounds (``≥ 1``).
         max_steps: Gauss–Newton steps per round.
-        rtol: relative change of the cost below which the last round stops; the rounds
-            before it stop at ``100·rtol`` (their targets are shifted again: on four
-            benchmark edits 62 steps instead of 71, every target met, position errors within
-            0.12 mm of those of tight early rounds).
+        rtol: relative change of the cost below which the last round stops.
+        early_rtol: the same for the rounds before it (``None``: ``100·rtol``; their targets
+            are shifted again: on four benchmark edits 62 steps instead of 71, every target
+            met, position errors within 0.12 mm of those of tight early rounds).
+        exact_lower: ``(T, K)``: the multiplier rounds also shift every lower height (an
+            augmented Lagrangian of the bound ``h ≥ lower``: ``s ← max(0, s + lower − h)``,
+            the penalty on ``lower + s − h``), so the bounds are met instead of balanced
+            against the prior; the mask marks the bounds that decide whether another round
+            is needed (``lower_tol``). ``None``: the lower heights are plain penalties.
+        exact_points: the multiplier rounds shift the point targets marked ``exact``;
+            ``False``: the point targets stay penalties (only the lower heights are shifted).
+        lower_tol: with ``exact_lower`` and not ``exact_points``, no further round starts once
+            no bound of the mask is violated by more than this (the round's stop is final).
         xtol: largest step (z-scored units) below which a round stops.
         colouring: channels that share a Jacobian-vector product (:func:`channel_colouring`);
             ``None``: one product per channel.
@@ -216,15 +230,15 @@ def solve_banded(
     def point_res(P: Array, shift: Array) -> Array:
         return P[points.frame, points.slot] - points.target - shift  # (P, 3)
 
-    def cost_of(z: Array, shift: Array) -> Array:
+    def cost_of(z: Array, shift: Array, ls: Array) -> Array:
         P = fn(edited(z)) + offset(z)
         r = point_res(P, shift)
-        low = jnp.maximum(lower - P[..., up], 0.0)
+        low = jnp.maximum(lower + ls - P[..., up], 0.0)
         v = jnp.where(held[:, None], delta, z * var_ch)
         hz = band_quad(bands, v) + jnp.sum((anchor * v) ** 2)
         return 0.5 * (hz + jnp.sum(w2 * r * r) + jnp.sum((lw * low) ** 2))
 
-    def gn_step(z: Array, shift: Array, active: Array):
+    def gn_step(z: Array, shift: Array, ls: Array, active: Array):
         fc = frame_columns(fn, edited(z), free_ch, colouring)
         P = fc.P + offset(z)
         Jp = fc.rows(points.frame, points.slot)  # (P, 3, D)
@@ -236,10 +250,10 @@ def solve_banded(
         # rows are weighted and stacked per frame, one batched product; the sparse targets'
         # terms are scattered to their frames (no D × D matrix per frame-major target)
         ns = points.sparse_count
-        h = P[..., up]
-        act = (h < lower).astype(dt)  # (T, K): one-sided, the active set at z
+        h, low = P[..., up], lower + ls
+        act = (h < low).astype(dt)  # (T, K): one-sided, the active set at z
         rows = [fc.axis(up) * (lw * act)[..., None]]  # (T, K, D)
-        res = [lw * act * (h - jnp.where(act > 0, lower, h))]
+        res = [lw * act * (h - jnp.where(act > 0, low, h))]
         if points.per_frame:
             F = points.per_frame
             wd = points.weight[ns:].reshape(T, F, 3)
@@ -256,7 +270,7 @@ def solve_banded(
             A = A.at[points.frame[:ns]].add(A_p)
             b = b.at[points.frame[:ns]].add(b_p)
         H0, H1, H2 = bands
-        z_star, fac, ok = _normal_solve(
+        z_star, fac, ok = normal_solve(
             H0, A, H1, H2, var_ch, anchor, held, delta, -(b * var_ch), active
         )
         return z_star - delta, fac, ok
@@ -264,7 +278,7 @@ def solve_banded(
     keep_rows = (~held)[:, None].astype(dt) * var_ch[None, :]
     grad_of = jax.grad(cost_of)
     value_and_grad_of = jax.value_and_grad(cost_of)
-    early_rtol = 100.0 * rtol
+    early = 100.0 * rtol if early_rtol is None else early_rtol
 
     def advance(s: _Iterate, z_try: Array, fac_ok: Array, pred: Array, full: bool) -> _Iterate:
         """Take the step to ``z_try`` (halved while it does not lower the cost), test the
@@ -279,12 +293,12 @@ def solve_banded(
         def halve(b):
             _zt, _ct, i = b
             zt = z + (0.5 ** (i + 1)) * dz
-            return zt, cost_of(zt, s.shift), i + 1
+            return zt, cost_of(zt, s.shift, s.lshift), i + 1
 
         if chord:  # the cost and the gradient the next chord step needs, in one pass
-            c_try, g_try = value_and_grad_of(z_try, s.shift)
+            c_try, g_try = value_and_grad_of(z_try, s.shift, s.lshift)
         else:
-            c_try, g_try = cost_of(z_try, s.shift), s.g
+            c_try, g_try = cost_of(z_try, s.shift, s.lshift), s.g
         zt, ct, i = lax.while_loop(worse, halve, (z_try, c_try, 0))
         better = (ct < c) & jnp.isfinite(ct)
         z_new, c_new = jnp.where(better, zt, z), jnp.where(better, ct, c)
@@ -293,7 +307,7 @@ def solve_banded(
         g_ok = jnp.where(better, i == 0, s.g_ok)
         step = jnp.max(jnp.abs(z_new - z))
         # rounds before the last stop early: their targets are shifted again anyway
-        tol = jnp.where(s.round + 1 < rounds, early_rtol, rtol)
+        tol = jnp.where(s.round + 1 < rounds, early, rtol)
         stop = (c - c_new <= tol * jnp.maximum(c, 1e-30)) | (step <= xtol)
         # a chord step that needed halving or gained less than half of what its model
         # promised (pred) is poor: the next step refactors, and a poor chord step never
@@ -308,13 +322,26 @@ def solve_banded(
         def next_round():  # the exact targets shifted by their remaining error
             P = fn(edited(z_new)) + offset(z_new)
             err = P[points.frame, points.slot] - points.target
-            shift = s.shift - jnp.where(points.exact[:, None], err, 0.0)
-            return shift, cost_of(z_new, shift)
+            shift = s.shift - jnp.where(points.exact[:, None] & exact_points, err, 0.0)
+            gap = lower - P[..., up]  # > 0: a bound violated
+            if exact_lower is None:
+                ls, met = s.lshift, jnp.asarray(False)
+            else:  # only bounds shifted, every one met to lower_tol: no further round
+                ls = jnp.maximum(s.lshift + gap, 0.0)
+                met = ~jnp.any(exact_lower & (gap > lower_tol)) & (not exact_points)
+            return shift, ls, cost_of(z_new, shift, ls), met
 
-        shift, c_next = lax.cond(new_round, next_round, lambda: (s.shift, c_new))
+        same = lambda: (s.shift, s.lshift, c_new, jnp.asarray(False))
+        shift, lshift, c_next, met = lax.cond(new_round, next_round, same)
+        last = last | met
+        new_round = new_round & ~met
+        shift = jnp.where(met, s.shift, shift)
+        lshift = jnp.where(met, s.lshift, lshift)
+        c_next = jnp.where(met, c_new, c_next)
         return _Iterate(
             z=z_new,
             shift=shift,
+            lshift=lshift,
             cost=c_next,
             round=s.round + new_round.astype(jnp.int32),
             k=jnp.where(end, 0, k),
@@ -329,7 +356,7 @@ def solve_banded(
 
     def fresh_then_chords(s: _Iterate) -> _Iterate:
         """One fresh Gauss–Newton step, then chord steps with its factor while they work."""
-        z_gn, fac, ok = gn_step(s.z, s.shift, ~s.finished)
+        z_gn, fac, ok = gn_step(s.z, s.shift, s.lshift, ~s.finished)
         s = advance(s, z_gn, ok, jnp.zeros((), dt), full=True)
         if not chord:
             return s
@@ -340,19 +367,22 @@ def solve_banded(
         def chord_step(s: _Iterate) -> _Iterate:
             # z − B₀⁻¹ g with the factor B₀ of the last fresh step (a loop invariant: the
             # factor is not carried), and the model's promise ½ gᵀB₀⁻¹g
-            g = lax.cond(s.g_ok, lambda: s.g, lambda: grad_of(s.z, s.shift)) * keep_rows
+            g = lax.cond(s.g_ok, lambda: s.g, lambda: grad_of(s.z, s.shift, s.lshift))
+            g = g * keep_rows
             z_c = s.z - block_penta_solve(fac, g) * keep_rows
             return advance(s, z_c, fac.ok, -0.5 * jnp.sum((z_c - s.z) * g), full=False)
 
         return lax.while_loop(lambda s: ~s.finished & ~s.fresh, chord_step, s)
 
     shift0 = jnp.zeros_like(points.target)
+    ls0 = jnp.zeros_like(lower)
     z0 = jnp.zeros((T, D), dt)
     i0 = jnp.asarray(0, jnp.int32)
     init = _Iterate(
         z=z0,
         shift=shift0,
-        cost=cost_of(z0, shift0),
+        lshift=ls0,
+        cost=cost_of(z0, shift0, ls0),
         round=i0,
         k=i0,
         steps=i0,
@@ -375,6 +405,7 @@ class _Iterate(eqx.Module):
 
     z: Float[Array, "T D"]
     shift: Float[Array, "P 3"]  # the exact targets' multiplier shifts
+    lshift: Float[Array, "T K"]  # the lower heights' shifts (exact_lower)
     cost: Float[Array, ""]
     round: Int[Array, ""]
     k: Int[Array, ""]  # steps in this round
@@ -385,111 +416,3 @@ class _Iterate(eqx.Module):
     ok: Bool[Array, ""]
     g: Float[Array, "T D"]  # the cost's gradient at z (chord steps), valid if g_ok
     g_ok: Bool[Array, ""]
-
-
-def _no_factor(T: int, D: int, dt) -> BlockPentaCholesky:
-    """A zero factor (a skipped factorisation) of a problem in precision ``dt``."""
-    z = jnp.zeros((T, D, D), factor_dtype(dt))
-    return BlockPentaCholesky(
-        Linv=z, L1=z, L2=z, ok=jnp.asarray(True), first_bad=jnp.asarray(-1, jnp.int32)
-    )
-
-
-@jax.custom_batching.custom_vmap
-def _normal_solve(H0, A, H1, H2, var_ch, anchor, held, delta, linear, active):
-    """The Gauss–Newton normal equations' solution, their factor and the step's status.
-
-    The matrix is ``H + M A M + diag(anchor²)`` over the free frames (``A``: the
-    constraints' block-diagonal ``Σ JᵀW²J``, ``M = diag(var_ch)``), with an identity block
-    at each held frame, whose displacement is ``delta``; the right-hand side is
-    ``−(linear + H δ)``. Factorised with one frame per block
-    (:func:`~mtex_jax.linalg.block_penta_factor`, each block formed inside the recursion, so
-    the matrix is never stored), by :func:`step_solve`. Returns ``(z, factor, ok)``: the
-    factor (for chord steps) may be of lower precision than the problem, and ``ok`` says
-    that the step was solved.
-
-    ``active`` (a bool) says whether the caller will use the result: a motion of a ``vmap``
-    batch that has already stopped (or takes a chord step) still runs the loop body until
-    every motion has, and its factorisation is skipped (zeros returned). Without ``vmap`` the
-    solve always runs.
-
-    Under ``vmap`` the motions are factorised one after the other (``lax.map``, with
-    ``lax.cond`` on ``active``): a batched block Cholesky hands LAPACK a batch of triangular
-    solves, which XLA's CPU backend runs orders of magnitude slower (measured with the
-    frame-pair factor's ``108 × 108`` pivot blocks: an inverse 0.09 ms alone, 21 ms in a
-    batch of 4; a batch of 4 motions of 600 frames did not finish in 5 minutes, one took
-    0.13 s); everything else in the solve stays batched."""
-    del active
-    D = H0.shape[-1]
-    dt = H0.dtype
-    f = (~held).astype(dt)
-    b = linear + band_matvec((H0, H1, H2), delta)
-    f1 = jnp.concatenate([jnp.zeros((1,), dt), f[:-1]])
-    f2 = jnp.concatenate([jnp.zeros((2,), dt), f[:-2]])
-    mm = var_ch[:, None] * var_ch[None, :]
-    eye, ridge = jnp.eye(D, dtype=dt), jnp.diag(anchor**2)
-
-    def blocks(x):
-        h0, a, h1, h2, held_t, f_t, f_1, f_2 = x
-        a0 = jnp.where(held_t, eye, sym(h0 + a * mm) + ridge)
-        return a0, h1 * (f_t * f_1), h2 * (f_t * f_2)
-
-    z_star, fac, ok = step_solve(blocks, (H0, A, H1, H2, held, f, f1, f2), -b * f[:, None])
-    return z_star * f[:, None] + delta, fac, ok
-
-
-def factor_dtype(dtype) -> jnp.dtype:
-    """The precision of a step's factor: single for a double-precision problem."""
-    return jnp.dtype(jnp.float32 if jnp.dtype(dtype) == jnp.float64 else dtype)
-
-
-def step_solve(blocks, xs, rhs: Array) -> tuple[Array, BlockPentaCholesky, Array]:
-    """A Gauss–Newton step's solve: the normal matrix (blocks ``blocks(x_t)`` of the frames'
-    slices of ``xs``, :func:`~mtex_jax.linalg.block_penta_factor`) factored in single
-    precision for a double-precision problem, the substitution in the problem's precision.
-
-    The factor only chooses the step's direction: each step is accepted on the cost, computed
-    in the problem's precision, and the iteration stops where the gradient does, so an
-    inexact factor changes the path, not the solution (an inexact Gauss–Newton step). In
-    single precision the factorisation takes about 35 % less time (measured, 1,280 frames of
-    54 channels); each block is rounded inside the recursion and the factor stays in single
-    precision (the substitution converts it block by block), so no converted copy of the
-    matrix or the factor is made. If it fails (a matrix too ill-conditioned for single
-    precision), the step is factored and solved again in the problem's precision; the
-    returned factor then reports ``ok = False`` and is not used for chord steps.
-
-    Returns:
-        ``(x, factor, ok)``: the solution, the single-precision factor, whether either
-        factorisation succeeded.
-    """
-    lo = block_penta_factor(blocks, xs, dtype=factor_dtype(rhs.dtype))
-    if lo.Linv.dtype == rhs.dtype:
-        return block_penta_solve(lo, rhs), lo, lo.ok
-
-    def exact() -> tuple[Array, Array]:
-        hi = block_penta_factor(blocks, xs)
-        return block_penta_solve(hi, rhs), hi.ok
-
-    x, ok = lax.cond(lo.ok, lambda: (block_penta_solve(lo, rhs), lo.ok), exact)
-    return x, lo, ok
-
-
-@_normal_solve.def_vmap
-def _normal_solve_vmap(axis_size: int, in_batched, *args):
-    full = tuple(
-        a if b else jnp.broadcast_to(a, (axis_size, *jnp.shape(a)))
-        for a, b in zip(args, in_batched, strict=True)
-    )
-
-    def one(xs):
-        *a, active = xs
-        T, D = a[-1].shape
-        skip = lambda *_: (
-            jnp.zeros_like(a[-1]),
-            _no_factor(T, D, a[-1].dtype),
-            jnp.asarray(True),
-        )
-        return lax.cond(active, lambda *b: _normal_solve(*b, active), skip, *a)
-
-    out = lax.map(one, full)
-    return out, jax.tree.map(lambda _: True, out)

@@ -3,13 +3,12 @@
 Contacts come from a :class:`~mtex_jax.metrics.ContactModel` fitted on the *training* clips
 (:func:`~mtex_jax.metrics.fit_contacts`: per-foot height and speed thresholds and the training
 floor): the one a learned texture carries, or one passed by hand (:func:`save_contacts` /
-:func:`load_contacts` store it in a file of its own). On the
-raw motion a step ``t → t+1`` of foot ``f`` is a contact when the foot is low at both ends
-(``h < H_f``; optionally also slow, ``s < S_f``, the model's own rule). Each run of contact
-steps becomes a plant (no horizontal motion, at the run's mean height clipped to
-``[floor, H_f]``); a foot that was above ``H_f`` outside the contacts is kept above it (a swing
-foot stays a swing foot), the floor applies to every moving joint, and
-:func:`~mtex_jax.edit.edit` solves for the motion.
+:func:`load_contacts` store it in a file of its own). On the raw motion a step ``t → t+1`` of
+foot ``f`` is a contact when the foot is low at both ends (``h < H_f``; optionally also slow,
+``s < S_f``, the model's own rule). Each run of contact steps becomes a plant (no horizontal
+motion, at the run's mean height clipped to ``[floor, H_f]``); a foot that was above ``H_f``
+outside the contacts is kept above it (a swing foot stays a swing foot), the floor applies to
+every moving joint, and the banded solver (design §6.6) solves for the motion.
 """
 
 from __future__ import annotations
@@ -250,18 +249,20 @@ def clean(
     root_smooth: float = 1000.0,
     max_steps: int | None = None,
     rtol: float = 1e-2,
+    floor_rounds: int = 3,
     cg_steps: int = 1000,
     loglik: bool = True,
 ) -> CleanResult:
     """Remove foot skating and floor penetration, staying close to the texture's dynamics.
 
     Contacts are detected on the raw motion with the training clips' thresholds (module
-    notes); each contact run is planted (a penalty met by multiplier rounds: one horizontal
-    position per run, at the run's height), every moving joint is kept above the training floor
-    (a one-sided penalty), a swing foot that was above the contact height stays above it, and
-    the texture prior (on the change) plus a smoothness term keep the rest of the motion as it
-    was. With the default banded Gauss–Newton solver (:mod:`mtex_jax.edit._gn`) the swing feet
-    are also guided so that corrections blend in and out (:func:`swing_guidance`).
+    notes); each contact run is planted (a penalty: one horizontal position per run, at the
+    run's height), every moving joint is kept above the training floor and a swing foot that
+    was above the contact height stays above it (one-sided bounds, met by multiplier rounds
+    with ``"gn"``), and the texture prior (on the change) plus a smoothness term keep the rest
+    of the motion as it was. With the default banded Gauss–Newton solver
+    (:mod:`mtex_jax.edit._gn`) the swing feet are also guided so that corrections blend in and
+    out (:func:`swing_guidance`).
 
     Args:
         texture: the motion texture (with its feature map).
@@ -283,14 +284,16 @@ def clean(
             to reach them); ``False`` holds it.
         root_smooth: per metre of the root offset's second difference (one unit per 1 mm by
             default: the offset changes the root's acceleration little).
-        max_steps: solver steps (default 12 for ``"gn"``, 30 for ``"lm"``).
-        rtol: ``"gn"`` stops (and reports convergence) when a step lowers the cost by less
-            than this fraction (or moves no variable by more than ``1e-4``). One round, no
-            multipliers: plants are penalties (``EditWeights.plant``), measured in the result.
+        max_steps: solver steps (default 12 for ``"gn"``, per floor round; 30 for ``"lm"``).
+        rtol: ``"gn"`` stops a round (and reports convergence) when a step lowers the cost by
+            less than this fraction (or moves no variable by more than ``1e-4``). Plants are
+            penalties (``EditWeights.plant``), measured in the result.
             ``1e-2`` rather than ``1e-3``: on two training clips and three syntheses of 20 s
             it saved 0–3 of 6–11 steps, the final cost rose by at most 0.4 %, the skating
             median was unchanged (to 0.1 mm/s) and its 95th percentile moved by at most
             0.1 mm/s.
+        floor_rounds: ``"gn"``: multiplier rounds of the floor and lift bounds (an augmented
+            Lagrangian, design §6.6); ``1``: plain penalties, balanced against the prior.
         cg_steps: conjugate-gradient steps per Levenberg–Marquardt step (``"lm"`` only).
         loglik: also compute the log-likelihood per frame before and after (a forward pass
             each; ``False`` reports NaN).
@@ -310,6 +313,8 @@ def clean(
         )
     if solver not in ("gn", "lm"):
         raise ValueError(f"solver must be 'gn' or 'lm', got {solver!r}")
+    if isinstance(floor_rounds, bool) or not isinstance(floor_rounds, int) or floor_rounds < 1:
+        raise ValueError(f"floor_rounds must be an integer >= 1, got {floor_rounds!r}")
     if not (np.isfinite(swing_weight) and swing_weight >= 0):
         raise ValueError(f"swing_weight must be a finite number >= 0, got {swing_weight}")
     if isinstance(motion, Synthesis):
@@ -393,15 +398,18 @@ def clean(
             extra=extra,
             move_root=move_root,
             root_smooth=root_smooth,
-            rounds=1,
+            rounds=int(floor_rounds),
             max_steps=12 if max_steps is None else max_steps,
             rtol=rtol,
+            early_rtol=rtol,
+            exact_lower=True,  # the floor's bounds shifted between rounds until met to 1 mm
+            exact_points=False,  # the plants stay penalties
+            lower_tol=1e-3,
             chord=False,  # far from linear: the plants' and floor's active sets change
         )
     out = fm.decode(res.Y, res.start_position, sh)
-    nan = float("nan")
     # before and after scored in one call: the two motions packed as one sequence list
-    ll_before, ll_after = texture.log_likelihood([Y, res.Y], mean=True) if loglik else (nan, nan)
+    ll_before, ll_after = texture.log_likelihood([Y, res.Y], mean=True) if loglik else [np.nan] * 2
     return CleanResult(
         motion=out,
         Y=res.Y,

@@ -137,6 +137,10 @@ def solve_edit_gn(
     rounds: int = 3,
     max_steps: int = 8,
     rtol: float = 1e-6,
+    early_rtol: float | None = None,
+    exact_lower: bool = False,
+    exact_points: bool = True,
+    lower_tol: float = 0.0,
     xtol: float = 1e-4,
     chord: bool = True,
 ) -> EditResult:
@@ -156,7 +160,10 @@ def solve_edit_gn(
             start position of the result are re-derived from it (``result.start_position``).
         root_smooth: per metre of the offset's second difference (with ``move_root``).
         rounds: multiplier rounds; max_steps: Gauss–Newton steps per round.
-        rtol, xtol: stopping test of :func:`~mtex_jax.edit._banded.solve_banded`.
+        rtol, early_rtol, xtol: stopping tests of :func:`~mtex_jax.edit._banded.solve_banded`.
+        exact_lower, exact_points, lower_tol: which constraints the multiplier rounds meet
+            exactly (the floor and lift bounds; the exact point targets), and the tolerance of
+            the floor that ends the rounds (:func:`~mtex_jax.edit._banded.solve_banded`).
         chord: reuse factorisations between steps (:func:`~mtex_jax.edit._banded.solve_banded`).
 
     Returns:
@@ -192,6 +199,7 @@ def solve_edit_gn(
     if extra is not None:
         points = join_points(points, extra)
     lower = jnp.where((jnp.arange(T) < prob.n_valid)[:, None], lower, -jnp.inf)
+    floor_bounds = (lower == cons.floor.astype(lower.dtype)) & cons.floor_on  # not a lift
     roots = root_channels(fm) if move_root else None
     sol = solve_banded(
         fn,
@@ -211,6 +219,10 @@ def solve_edit_gn(
         rounds=rounds,
         max_steps=max_steps,
         rtol=rtol,
+        early_rtol=early_rtol,
+        exact_lower=floor_bounds if exact_lower else None,
+        exact_points=exact_points,
+        lower_tol=lower_tol,
         xtol=xtol,
         colouring=channel_colouring(fm, prob.keep),
         chord=chord,
