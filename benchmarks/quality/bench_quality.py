@@ -21,7 +21,9 @@ Rows, measured in one run:
    speed/acceleration/jerk and their ratio to the real-vs-real floor, foot skating, floor
    penetration, jumps above the real p99, novelty, copying): the texture's constrained
    synthesis (sampled noise: the default innovations, blocks replayed from the training
-   residuals; the same syntheses cleaned by ``mtex_jax.edit.clean`` with the training clips'
+   residuals, each texton bent to the next key poses near its end (design §10.11); the same
+   paths with the bend spread over the texton, ``transition=None``; the same syntheses
+   cleaned by ``mtex_jax.edit.clean`` with the training clips'
    contact model; the fitted innovation process, ``LearnConfig(innovations="fitted")``, the
    default before; independent innovations, the paper; zero noise), its noise-driven
    synthesis (MT Fig. 7b: each texton run from the previous frames without end
@@ -347,6 +349,11 @@ def main() -> None:
     syn_w = [mj.synthesize(k, white, n_frames=n_frames) for k in keys]
     rows["texture constrained (sampled noise), independent innovations"] = judge.judge(
         [s.motion for s in syn_w], boundaries=[s.boundaries() for s in syn_w]
+    )
+    log("texture: constrained synthesis, the bend spread over each texton (transition=None)")
+    syn_s = [mj.synthesize(k, tex, n_frames=n_frames, transition=None) for k in keys]
+    rows["texture constrained (sampled noise), bend spread over the texton"] = judge.judge(
+        [s.motion for s in syn_s], boundaries=[s.boundaries() for s in syn_s]
     )
     log("texture: constrained synthesis, zero noise (conditional mean) on the same paths")
     syn0 = [mj.synthesize(None, tex, s.path, lengths=s.lengths) for s in syn]

@@ -152,3 +152,19 @@ def test_cleaned_synthesis_stays_above_the_training_floor(tex, seed):
     assert pen.max_depth <= 0.01, pen
     raw = mj.synthesize(jax.random.key(seed), tex, n_frames=1200)
     assert tex.contacts.penetration(raw.motion).max_depth > 0.05  # there was work to do
+
+
+@pytest.mark.slow  # two cleans of 1,200 frames
+def test_floor_rounds_meet_the_floor_that_a_penalty_balances(tex):
+    """The floor's multiplier rounds do the work: one round (the floor as a plain penalty)
+    leaves seed 1's synthesis more than 1 cm below the floor, the default rounds do not; a bad
+    number of rounds is refused."""
+    raw = mj.synthesize(jax.random.key(1), tex, n_frames=1200)
+    one = E.clean(tex, raw, floor_rounds=1, loglik=False)
+    three = E.clean(tex, raw, loglik=False)
+    assert one.penetration_after.max_depth > 0.02
+    assert three.penetration_after.max_depth <= 0.005
+    assert int(three.edit.steps) > int(one.edit.steps)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="floor_rounds"):
+            E.clean(tex, raw, floor_rounds=bad)

@@ -165,10 +165,11 @@ def test_aligned_draws_replay_the_instance_segment(learned):
         draw_residuals(jax.random.key(0), bank, [0, 1], L, instances=[0])
 
 
-def _dense_constrained(tex, i, start, end, length, v):
+def _dense_constrained(tex, i, start, end, length, v, weights=None):
     """Numpy: texton ``i`` held at ``start`` (frames 0, 1) and ``end`` (frames l−2, l−1),
-    the free states minimising ``Σ_j ‖B⁻¹(x_j − A1 x_{j−1} − A2 x_{j−2} − d) − v_j‖²`` by
-    dense least squares; observations ``μ + C x``."""
+    the free states minimising ``Σ_j ω_j ‖B⁻¹(x_j − A1 x_{j−1} − A2 x_{j−2} − d) − v_j‖²``
+    by dense least squares (``weights`` ``ω_j`` for ``j = 2 … l−1``, default 1);
+    observations ``μ + C x``."""
     t = tex.textons[int(i)]
     mu, C, A1, A2, d, B = (np.asarray(a) for a in (t.mu, t.C, t.A1, t.A2, t.d, t.B))
     k = C.shape[1]
@@ -186,6 +187,9 @@ def _dense_constrained(tex, i, start, end, length, v):
                 c[r] -= M @ held[f]
             else:
                 G[r, col[f] : col[f] + k] = M
+    if weights is not None:
+        root = np.repeat(np.sqrt(np.asarray(weights, dtype=np.float64)), k)
+        G, c = G * root[:, None], c * root
     x = np.zeros((length, k))
     x[free] = np.linalg.lstsq(G, c, rcond=None)[0].reshape(len(free), k)
     for f, h in held.items():
@@ -255,22 +259,24 @@ def test_tail_draws_are_the_process_per_row_and_padding_free(learned):
     assert np.allclose(white[3], np.asarray(ref)[:150], rtol=0, atol=1e-12)
 
 
-def test_aligned_synthesis_replays_each_textons_instance(learned):
-    """Two textons along a clip's own segmentation: each is the constrained least squares
-    (dense numpy reference) with its own instance's residuals (numpy), then, for the two
-    equations of its end frames past them, the tail draws of the innovation process."""
+def _two_textons_of_clip_1(tex, ys, tau=None):
+    """Two textons along clip 1's own segmentation (no glitch there), synthesised with aligned
+    replay (``tau``: the bend's time constant in frames, ``None``: weights 1), checked texton
+    by texton against the dense least squares (numpy) of its own instance's residuals and,
+    for the two equations of its end frames past them, the tail draws of the innovation
+    process, each equation ``j`` weighted ``exp(max(l − j, 0)/τ)`` (1 without ``tau``).
+    Returns the synthesis, its arguments and the first texton's training frames."""
     from mtex_jax.texture._synthesis import path_noise as pn, sequence as seq
     from mtex_jax.texture._synthesis.sequence import synthesize_path
 
-    tex, ys = learned
     segs = np.asarray(tex.segments)
-    c = 1  # no glitch in clip 1
-    rows = np.flatnonzero(segs[:, 0] == c)[:3]
+    rows = np.flatnonzero(segs[:, 0] == 1)[:3]
     idx, path, lens = rows[:2], segs[rows[:2], 3], segs[rows[:2], 2]
     kp = np.asarray(tex.key_poses)
-    args = (path, lens, idx, None, kp[rows[2]], False, "whitened", "blend")
+    args = (path, lens, idx, None, kp[rows[2]], False, "whitened", "blend", "aligned")
     key = jax.random.key(3)
-    Y = np.asarray(synthesize_path(tex, key, *args, "aligned"))
+    decay = None if tau is None else 1.0 / tau
+    Y = np.asarray(synthesize_path(tex, key, *args, decay=decay))
     k = int(tex.textons.C.shape[-1])
     l_pad = pn.round_up(int(max(lens.max(), tex.config.tmax)) + 2, seq._PAD_FRAMES)
     shape = (seq.path_capacity(tex, 2), l_pad - 2, k)
@@ -284,12 +290,39 @@ def test_aligned_synthesis_replays_each_textons_instance(learned):
         s0, a0, n0, i0 = segs[j]
         u = np.asarray([_residual(tex, ys[s0], t, i0) for t in range(a0 + 2, a0 + n0)])
         v = np.concatenate([u, tail[m, n0 - 2 : n0]])
-        ref = _dense_constrained(tex, i0, kp[j], kp[rows[m + 1]], n0 + 2, v)
+        omega = None
+        if tau is not None:
+            omega = np.exp(np.maximum(n0 - np.arange(2, n0 + 2), 0) / tau)
+        ref = _dense_constrained(tex, i0, kp[j], kp[rows[m + 1]], n0 + 2, v, omega)
         assert np.allclose(Y[at : at + n0], ref[:n0], atol=1e-8)
         at += n0
-    # the shuffled replay does not follow the instance's residuals
-    Z = np.asarray(synthesize_path(tex, jax.random.key(3), *args, "shuffled"))
+    a0, n0 = segs[idx[0], 1], int(lens[0])
+    return Y, args, ys[1][a0 : a0 + n0]
+
+
+def test_aligned_synthesis_replays_each_textons_instance(learned):
+    """Each texton is the dense least squares with its own instance's residuals (see
+    ``_two_textons_of_clip_1``); the shuffled replay does not follow them."""
+    from mtex_jax.texture._synthesis.sequence import synthesize_path
+
+    tex, ys = learned
+    Y, args, _ = _two_textons_of_clip_1(tex, ys)
+    Z = np.asarray(synthesize_path(tex, jax.random.key(3), *args[:-1], "shuffled"))
     assert not np.allclose(Z, Y, atol=1e-3)
+
+
+@pytest.mark.parametrize("tau", [4.0, 15.0])
+def test_transition_weights_the_equations_towards_the_end(learned, tau):
+    """The bend near the end (design §10.11): with ``decay = 1/τ`` each texton is the dense
+    least squares with equation ``j`` weighted ``exp(max(l − j, 0)/τ)`` (``l`` = its length,
+    the end pair at rows ``l, l + 1``), the same residuals replayed; its first frames stay
+    closer to the training clip it replays than with the bend spread over the texton."""
+    tex, ys = learned
+    Y, _, real = _two_textons_of_clip_1(tex, ys, tau)
+    Y1, _, _ = _two_textons_of_clip_1(tex, ys)
+    assert not np.allclose(Y, Y1, atol=1e-3)  # it changes the motion
+    early = slice(2, len(real) // 3)
+    assert np.abs(Y[early] - real[early]).max() < np.abs(Y1[early] - real[early]).max()
 
 
 def test_draws_are_blocks_from_a_uniformly_chosen_segment_of_the_texton(learned):

@@ -3,6 +3,7 @@ embedded clips (design §5)."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import equinox as eqx
@@ -39,7 +40,9 @@ def test_every_texton_equals_single_texton_synthesis(texture):
     rng = np.random.default_rng(0)
     path = rng.integers(0, texture.n_textons, 5)
     lengths = rng.integers(12, 40, 5)
-    s = mj.synthesize(None, texture, path=path, lengths=lengths, residual="subspace")
+    s = mj.synthesize(
+        None, texture, path=path, lengths=lengths, residual="subspace", transition=None
+    )
     Y, st, kp = np.asarray(s.Y), np.asarray(s.starts), np.asarray(texture.key_poses)
     segs = np.asarray(s.key_segments)
     assert Y.shape == (lengths.sum(), texture.obs_dim) and st.tolist() == [
@@ -345,3 +348,35 @@ def test_errors(texture):
         mj.choreograph(key, texture, np.zeros((2, D)), np.ones((2, D)), n_frames=5)
     with pytest.raises(TypeError, match="MotionTexture"):
         mj.synthesize(key, texture.M, n_frames=50)
+
+
+def test_transition_default_and_bad_values(texture):
+    """``transition="auto"`` is ``DEFAULT_TRANSITION`` seconds for a texture with a frame rate
+    (design §10.11); it changes the motion but not the held key poses; bad values are
+    rejected by name, and seconds need a frame rate."""
+    key = jax.random.key(4)
+    auto = mj.synthesize(key, texture, n_frames=300)
+    same = mj.synthesize(key, texture, n_frames=300, transition=mj.texture.DEFAULT_TRANSITION)
+    spread = mj.synthesize(key, texture, n_frames=300, transition=None)
+    np.testing.assert_array_equal(np.asarray(auto.Y), np.asarray(same.Y))
+    np.testing.assert_array_equal(np.asarray(auto.path), np.asarray(spread.path))
+    assert not np.allclose(np.asarray(auto.Y), np.asarray(spread.Y), atol=1e-6)
+    kp = np.asarray(texture.key_poses)
+    for b, k in zip(np.asarray(auto.starts), np.asarray(auto.key_segments), strict=True):
+        np.testing.assert_allclose(np.asarray(auto.Y)[b : b + 2], kp[k], rtol=0, atol=1e-9)
+    for bad, err in [("slow", ValueError), (True, TypeError), ("0.2", ValueError)]:
+        with pytest.raises(err, match="transition"):
+            mj.synthesize(key, texture, n_frames=300, transition=bad)
+    for bad in [0.0, -1.0, float("nan"), float("inf"), 0.5 / 30.0]:
+        with pytest.raises(ValueError, match="transition"):
+            mj.synthesize(key, texture, n_frames=300, transition=bad)
+    raw = dataclasses.replace(texture, feature_map=None, contacts=None)
+    with pytest.raises(ValueError, match="frame rate"):
+        mj.synthesize(key, raw, n_frames=300, transition=0.25)
+    # without a frame rate "auto" is the exact conditional sample
+    np.testing.assert_allclose(
+        np.asarray(mj.synthesize(key, raw, n_frames=300, decode=False).Y),
+        np.asarray(spread.Y),
+        rtol=1e-12,
+        atol=1e-12,
+    )

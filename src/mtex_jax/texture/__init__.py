@@ -79,6 +79,9 @@ from ._segmentation.segment import (
     viterbi_segments as viterbi_segments,
 )
 from ._summary import texture_summary as texture_summary
+from ._synthesis.checks import (
+    DEFAULT_TRANSITION as DEFAULT_TRANSITION,
+)
 from ._synthesis.choreograph import (
     choreograph as choreograph,
     match_texton as match_texton,
@@ -138,6 +141,7 @@ from ._vocabulary import (
 )
 
 __all__ = [
+    "DEFAULT_TRANSITION",
     "MAX_SELF_REPEATS",
     "OBSERVATION_MODELS",
     "PLAUSIBLE_TAIL",

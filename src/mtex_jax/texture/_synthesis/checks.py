@@ -11,13 +11,18 @@ from ...core import MAX_GENERATED_FRAMES, check_count, check_size
 from .._model import MotionTexture
 
 __all__ = [
+    "DEFAULT_TRANSITION",
     "check_lengths",
     "check_n_frames",
     "check_options",
     "check_pair",
     "check_texture",
     "scale_lengths",
+    "transition_decay",
 ]
+
+#: Default time constant (seconds) of the bend towards the next key poses (design §10.11).
+DEFAULT_TRANSITION = 0.25
 
 
 def check_texture(texture: MotionTexture) -> None:
@@ -93,3 +98,35 @@ def scale_lengths(lengths: np.ndarray, total: int, min_len: np.ndarray) -> np.nd
             slack = np.where(out > min_len, out - lengths * total / lengths.sum(), -np.inf)
             out[np.argmax(slack)] -= 1
     return out
+
+
+def transition_decay(texture: MotionTexture, transition: Any) -> float | None:
+    """``1 / τ`` in frames of the bend towards the next key poses (design §10.11), or ``None``
+    (the exact conditional sample: every equation weighted 1).
+
+    ``transition``: ``"auto"`` (:data:`DEFAULT_TRANSITION` seconds when the texture knows its
+    frame rate, i.e. was learned from motions, else ``None``), ``None``, or a positive number
+    of seconds (at least one frame).
+    """
+    fm = texture.feature_map
+    if isinstance(transition, str):
+        if transition != "auto":
+            raise ValueError(f"transition must be 'auto', None or seconds, got {transition!r}")
+        if fm is None:
+            return None
+        transition = DEFAULT_TRANSITION
+    if transition is None:
+        return None
+    if isinstance(transition, bool) or not isinstance(transition, int | float | np.number):
+        raise TypeError(f"transition must be 'auto', None or seconds, got {transition!r}")
+    if fm is None:
+        raise ValueError(
+            "transition in seconds needs a texture with a frame rate (learned from motions); "
+            "use transition=None"
+        )
+    frames = float(transition) * float(fm.fps)
+    if not (np.isfinite(frames) and frames >= 1.0):
+        raise ValueError(
+            f"transition must be finite and at least one frame (1/{fm.fps:g} s), got {transition!r}"
+        )
+    return 1.0 / frames

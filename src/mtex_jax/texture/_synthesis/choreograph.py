@@ -12,7 +12,14 @@ from ...core import check_key, limit
 from .._model import MotionTexture
 from .._scoring.frame_terms import frame_terms
 from .._scoring.frame_terms_ref import init_terms
-from .checks import check_n_frames, check_options, check_pair, check_texture, scale_lengths
+from .checks import (
+    check_n_frames,
+    check_options,
+    check_pair,
+    check_texture,
+    scale_lengths,
+    transition_decay,
+)
 from .keyposes import key_pose_instances
 from .paths import path_of_length, shortest_path
 from .sequence import Residual, Synthesis, finish, synthesize_path
@@ -58,6 +65,7 @@ def choreograph(
     weighting: Weighting = "whitened",
     residual: Residual = "blend",
     decode: bool = True,
+    transition: float | str | None = "auto",
 ) -> Synthesis:
     """Virtual choreographer (MT Fig. 1): a motion from a start pose to an end pose.
 
@@ -84,6 +92,8 @@ def choreograph(
         weighting: ``"whitened"`` or ``"paper"``.
         residual: ``"blend"`` or ``"subspace"`` (see :func:`synthesize`).
         decode: decode to a :class:`Motion`.
+        transition: where each texton bends towards the next key poses (see
+            :func:`synthesize`; design §10.11).
 
     Returns:
         a :class:`Synthesis` whose first and last two frames are the given poses.
@@ -91,6 +101,7 @@ def choreograph(
     check_key(key, "choreograph", allow_none=True)
     check_texture(texture)
     check_options(weighting, residual)
+    decay = transition_decay(texture, transition)
     D = texture.obs_dim
     s_np = check_pair("start_pose", start_pose, D)
     e_np = check_pair("end_pose", end_pose, D)
@@ -116,7 +127,17 @@ def choreograph(
     else:
         lens = np.maximum(lens, mins)
     Y = synthesize_path(
-        texture, k_noise, body, lens, seg_idx, s_np, e_np, True, weighting, residual
+        texture,
+        k_noise,
+        body,
+        lens,
+        seg_idx,
+        s_np,
+        e_np,
+        True,
+        weighting,
+        residual,
+        decay=decay,
     )
     seg_out = seg_idx.copy()
     seg_out[0] = -1

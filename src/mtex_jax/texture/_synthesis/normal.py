@@ -47,6 +47,9 @@ class _Equations(eqx.Module):
     They are left out of the least squares (held at 0, their equations dropped: ``eq_on``
     marks the equations kept, ``j = 2 … last held``) and continued by the dynamics
     recursion afterwards (:func:`_continue_tail`).
+
+    ``eq_weight``: the weight of equation ``j`` in the least squares (rows 0 and 1 unused),
+    or ``None`` (all 1: the exact conditional sample).
     """
 
     held: Bool[Array, " l"]
@@ -55,6 +58,7 @@ class _Equations(eqx.Module):
     rhs: Float[Array, "l k"]
     tail: Bool[Array, " l"] | None = None
     eq_on: Bool[Array, " l"] | None = None
+    eq_weight: Float[Array, " l"] | None = None
 
 
 def constrained_equations(
@@ -65,11 +69,14 @@ def constrained_equations(
     end: Array | None,
     fixed: tuple[Array, Array] | None,
     weighting: str,
+    eq_weight: Array | None = None,
 ) -> _Equations:
     """Held frames, Gram matrix ``K = [P0, P1, P2]ᵀ[P0, P1, P2]`` and right-hand side.
 
     See :func:`normal_system` for the equations; ``w`` ``(l−2, k)`` is the noise in state
-    units, ``w_j = B v_j``; ``w=None`` leaves the noise out.
+    units, ``w_j = B v_j``; ``w=None`` leaves the noise out. ``eq_weight`` ``(l,)``: equation
+    ``j`` enters the least squares as ``ω_j ‖G_j x − c_j‖²`` (rows 0 and 1 unused; ``None``:
+    every ``ω_j = 1``, the exact conditional sample; design §10.11).
     """
     dt = tex.mu.dtype
     k = tex.C.shape[-1]
@@ -107,24 +114,32 @@ def constrained_equations(
     U = U0 if w is None else w.astype(dt) @ Q + U0  # (l−2, 3k): [P0ᵀu_j, P1ᵀu_j, P2ᵀu_j]
     if eq_on is not None:
         U = jnp.where(eq_on[2:, None], U, 0.0)
+    if eq_weight is not None:
+        U = U * eq_weight[2:, None].astype(dt)
     h = (
         jnp.pad(U[:, :k], ((2, 0), (0, 0)))
         + jnp.pad(U[:, k : 2 * k], ((1, 1), (0, 0)))
         + jnp.pad(U[:, 2 * k :], ((0, 2), (0, 0)))
     )
     rhs = jnp.where(held[:, None], x_held, h)
-    return _Equations(held=held, x_held=x_held, K=P.T @ P, rhs=rhs, tail=tail, eq_on=eq_on)
+    return _Equations(
+        held=held, x_held=x_held, K=P.T @ P, rhs=rhs, tail=tail, eq_on=eq_on, eq_weight=eq_weight
+    )
 
 
 def _frame_blocks(
-    K: Array, held: Array, n: int, eq_on: Array | None = None
+    K: Array,
+    held: Array,
+    n: int,
+    eq_on: Array | None = None,
+    eq_weight: Array | None = None,
 ) -> tuple[Array, Array, Array]:
     """Masked normal-matrix blocks of ``n`` frames: ``(n, k, k)``, ``(n−1, …)``, ``(n−2, …)``.
 
     ``J_ii = Σ_s [eq i+s exists] P_sᵀ P_s``, ``J_{i+1,i} = [eq i+1] P0ᵀ P1 + [eq i+2] P1ᵀ P2``,
     ``J_{i+2,i} = [eq i+2] P0ᵀ P2`` (equations ``j = 2 … l−1`` exist, ``l = len(held)``, or
-    those marked by ``eq_on`` ``(l,)``); identity rows and columns at held frames. ``n ≥ l``
-    pads with held frames.
+    those marked by ``eq_on`` ``(l,)``), each times its weight ``ω`` (``eq_weight`` ``(l,)``,
+    or 1); identity rows and columns at held frames. ``n ≥ l`` pads with held frames.
     """
     k = K.shape[0] // 3
     dt = K.dtype
@@ -136,6 +151,8 @@ def _frame_blocks(
     eq: Any = ((idx >= 2) & (idx < length)).astype(np.float64)  # equation i exists (static)
     if eq_on is not None:
         eq = jnp.pad(eq_on.astype(dt), (0, n + 2 - length))
+    if eq_weight is not None:
+        eq = eq * jnp.pad(eq_weight.astype(dt), (0, n + 2 - length))
     w = lambda m: jnp.asarray(m, dt)[:, None, None]
     diag = w(eq[:n]) * Kb(0, 0) + w(eq[1 : n + 1]) * Kb(1, 1) + w(eq[2 : n + 2]) * Kb(2, 2)
     off1 = w(eq[1:n]) * Kb(0, 1) + w(eq[2 : n + 1]) * Kb(1, 2)  # block (i+1, i)
@@ -211,7 +228,7 @@ def solve_constrained(tex: Texton, eqs: _Equations, w: Array | None = None) -> t
     """
     length, k = eqs.rhs.shape
     nb = (length + 1) // 2
-    diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, 2 * nb, eqs.eq_on)
+    diag, off1, off2 = _frame_blocks(eqs.K, eqs.held, 2 * nb, eqs.eq_on, eqs.eq_weight)
     pdiag, psub = pair_blocks(diag, off1, off2)
     r = jnp.pad(eqs.rhs, ((0, 2 * nb - length), (0, 0))).reshape(nb, 1, 2 * k)
     x, ok, _ = tridiag_solve_rows(pdiag, psub, r)
@@ -239,3 +256,26 @@ def observe(tex: Texton, x: Array, ok: Array, check: bool = True) -> Array:
     x1 = jnp.concatenate([x, jnp.ones((x.shape[0], 1), x.dtype)], axis=1)
     y = x1 @ proj
     return y if check else jnp.where(ok, y, jnp.nan)
+
+
+def bent_texton(
+    tex: Texton,
+    v: Array,
+    start: Array,
+    fixed: tuple[Array, Array],
+    weighting: str,
+    decay: Array,
+    at: Array,
+) -> Array:
+    """Observations ``(l, D)`` of a texton held at ``start`` and at the ``fixed`` frames from
+    row ``at`` on, bent towards them near the end (design §10.11): equation ``j`` weighted
+    ``ω_j = exp(decay · max(at − j, 0))``, capped at ``ε^{-1/2}`` of the dtype. A failed
+    solve gives NaN frames (``check=False`` of :func:`observe`)."""
+    dt = tex.mu.dtype
+    length = v.shape[0] + 2
+    cap = 0.5 * float(np.log(1.0 / np.finfo(dt).eps))
+    lag = jnp.maximum(at - jnp.arange(length), 0)
+    omega = jnp.exp(jnp.minimum(jnp.asarray(decay).astype(dt) * lag, cap))
+    w = v.astype(dt) @ tex.B.T
+    eqs = constrained_equations(tex, length, w, start, None, fixed, weighting, omega)
+    return observe(tex, *solve_constrained(tex, eqs, w), check=False)

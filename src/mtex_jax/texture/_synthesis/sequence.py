@@ -15,7 +15,8 @@ A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthe
    ``K_m`` (the given ``start`` pose for ``m = 1``) and its last two held at ``K_{m+1}``,
    reprojected into its own subspace, ``x = C_{ℓ_m}ᵀ(K_{m+1} − μ_{ℓ_m})`` (MT §5.4,
    :func:`~mtex_jax.texture.synthesize_texton`). The last two frames are dropped, because
-   they are the first two frames of texton ``m + 1``: shared frames appear once. The
+   they are the first two frames of texton ``m + 1``: shared frames appear once. It bends
+   towards ``K_{m+1}`` in about its last ``transition`` seconds (design §10.11). The
    innovations of each texton replay the training residuals of the segment whose key poses
    it starts from (the texture's :class:`~mtex_jax.texture.ResidualBank`, aligned replay;
    where the texton is longer than that segment's residuals, the rows past them come from
@@ -67,8 +68,10 @@ from .checks import (
     check_pair,
     check_texture,
     scale_lengths,
+    transition_decay,
 )
 from .keyposes import key_pose_instances, next_texton
+from .normal import bent_texton
 from .path_noise import path_innovations, round_up
 from .paths import random_path
 from .texton_synthesis import Weighting, constrained_texton
@@ -158,6 +161,7 @@ def path_core(
     weighting: str,
     blend: bool,
     n_real: Int[Array, ""] | None = None,
+    decay: Float[Array, ""] | None = None,
 ) -> Float[Array, "n l D"]:
     length = v.shape[1] + 2
     t = jnp.arange(length)
@@ -179,7 +183,11 @@ def path_core(
         poses = jnp.where((t == at)[:, None], e[0], e[1])
         # check=False: a failed solve gives NaN, which synthesize_path reports from the host
         # (an in-program check is a host callback: the program could not be cached)
-        y = constrained_texton(tex, vi, s, None, (t >= at, poses), weighting, check=False)
+        fixed = (t >= at, poses)
+        if decay is None:
+            y = constrained_texton(tex, vi, s, None, fixed, weighting, check=False)
+        else:  # the bend towards the end pair near the end (design §10.11)
+            y = bent_texton(tex, vi, s, fixed, weighting, decay, at)
         if not blend:
             return y
         # residual outside the subspace, r = y − μ − C Cᵀ(y − μ), at the held frames, blended
@@ -213,12 +221,14 @@ def synthesize_path(
     weighting: str,
     residual: str,
     replay: str = "aligned",
+    decay: float | None = None,
 ) -> Array:
     """Observations ``(Σ lengths, D)`` of a planned path (see the module docstring).
 
     ``seg_idx`` are the key-pose instances (rows of ``texture.segments``); with
     ``replay="aligned"`` each texton replays the residuals of its own instance (not the
-    first one's when ``start`` replaces its key poses).
+    first one's when ``start`` replaces its key poses). ``decay``: ``1 / τ`` in frames of
+    the bend towards the end poses (:func:`~.checks.transition_decay`), or ``None``.
     """
     n = path.size
     tex = texture.textons
@@ -269,6 +279,7 @@ def synthesize_path(
         weighting,
         residual == "blend",
         jax.device_put(np.asarray(n, np.int32)),
+        None if decay is None else jax.device_put(np.asarray(decay, dt)),
     )
     rows = np.repeat(np.arange(n), lengths)
     cols = np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
@@ -326,6 +337,7 @@ def synthesize(
     decode: bool = True,
     lengths_from: str = "durations",
     replay: Replay = "aligned",
+    transition: float | str | None = "auto",
 ) -> Synthesis:
     """Synthesise a new motion from a motion texture (MT §5; design §5).
 
@@ -375,6 +387,14 @@ def synthesize(
             alignment: faster motion, more foot skating, less copying). The first texton of
             a synthesis with a given ``start``, and a segment the bank left out, draw at
             random.
+        transition: where a texton bends towards the next key poses (design §10.11): a time
+            constant ``τ`` in seconds, the least-squares equation of frame ``j`` weighted
+            ``exp((end − j) / τ)`` so that the correction concentrates in the last ``τ`` or so
+            before the end and the rest of the texton keeps its replayed motion;
+            ``"auto"`` (default): :data:`~mtex_jax.texture.DEFAULT_TRANSITION` s for a
+            texture learned from motions (``None`` without a frame rate); ``None``: every
+            equation weighted 1, the exact conditional sample (the correction spread over
+            the whole texton, MT §5.4).
 
     Returns:
         a :class:`Synthesis` (observations, path, lengths, starts, decoded motion).
@@ -385,6 +405,7 @@ def synthesize(
     check_key(key, "synthesize", allow_none=True)
     check_texture(texture)
     check_options(weighting, residual, replay)
+    decay = transition_decay(texture, transition)
     if lengths_from not in ("durations", "segments"):
         raise ValueError(f"lengths_from must be 'durations' or 'segments', got {lengths_from!r}")
     n_t = texture.n_textons
@@ -468,6 +489,7 @@ def synthesize(
         weighting,
         residual,
         replay,
+        decay,
     )
     seg_out = seg_idx.copy()
     if start_np is not None:
