@@ -374,6 +374,18 @@ def test_clean_result_decodes_with_its_start_position(tex, syn, contacts):
     )
 
 
+def _toy_problem(rng, T, D, K, spread):
+    """A small banded problem: ``K`` joints of ``tanh`` kinematics over ``D`` channels, a
+    motion ``Y0`` of ``T`` frames and prior bands laid out as ``prior_hessian``'s."""
+    W = jnp.asarray(rng.standard_normal((K, 3, D)) / np.sqrt(D))
+    fn = lambda Y: jnp.tanh(jnp.einsum("kcd,td->tkc", W, Y))
+    Y0 = jnp.asarray(spread * rng.standard_normal((T, D)))
+    eye = np.broadcast_to(np.eye(D), (T, D, D))
+    H1, H2 = -0.5 * eye.copy(), 0.1 * eye.copy()
+    H1[0] = H2[0] = H2[1] = 0.0  # the band layout of prior_hessian
+    return fn, Y0, (jnp.asarray(2.0 * eye), jnp.asarray(H1), jnp.asarray(H2))
+
+
 def _toy_points(T, F, K, rng, per_frame):
     slots = rng.integers(0, K, F)
     return PointTargets(
@@ -392,13 +404,7 @@ def test_frame_major_targets_solve_as_sparse_ones_and_join_per_frame():
     assembled one by one; join_points merges frame-major sets frame by frame."""
     rng = np.random.default_rng(4)
     T, D, K, F = 12, 5, 3, 2
-    W = jnp.asarray(rng.standard_normal((K, 3, D)) / np.sqrt(D))
-    fn = lambda Y: jnp.tanh(jnp.einsum("kcd,td->tkc", W, Y))
-    Y0 = jnp.asarray(0.2 * rng.standard_normal((T, D)))
-    eye = np.broadcast_to(np.eye(D), (T, D, D))
-    H1, H2 = -0.5 * eye.copy(), 0.1 * eye.copy()
-    H1[0] = H2[0] = H2[1] = 0.0  # the band layout of prior_hessian
-    bands = (jnp.asarray(2.0 * eye), jnp.asarray(H1), jnp.asarray(H2))
+    fn, Y0, bands = _toy_problem(rng, T, D, K, 0.2)
     args = (jnp.ones(D), jnp.ones(D), jnp.zeros(T, bool), Y0)
     lower = jnp.full((T, K), -jnp.inf)
     sparse = _toy_points(T, F, K, np.random.default_rng(9), per_frame=False)
@@ -456,14 +462,7 @@ def test_exact_lower_rounds_meet_the_bound_as_a_constrained_solve():
 
     rng = np.random.default_rng(5)
     T, D, K, F = 10, 4, 3, 1
-    W = jnp.asarray(rng.standard_normal((K, 3, D)) / np.sqrt(D))
-    fn = lambda Y: jnp.tanh(jnp.einsum("kcd,td->tkc", W, Y))
-    Y0 = jnp.asarray(0.4 * rng.standard_normal((T, D)))
-    eye = np.broadcast_to(np.eye(D), (T, D, D))
-    H1, H2 = -0.5 * eye.copy(), 0.1 * eye.copy()
-    H1[0] = H2[0] = H2[1] = 0.0  # the band layout of prior_hessian
-    A0 = 2.0 * eye
-    bands = (jnp.asarray(A0), jnp.asarray(H1), jnp.asarray(H2))
+    fn, Y0, bands = _toy_problem(rng, T, D, K, 0.4)
     anchor = jnp.ones(D)
     args = (anchor, jnp.ones(D), jnp.zeros(T, bool), Y0)
     pts = _toy_points(T, F, K, np.random.default_rng(9), per_frame=True)
@@ -485,7 +484,7 @@ def test_exact_lower_rounds_meet_the_bound_as_a_constrained_solve():
         lower_tol=1e-9,
     )
     pen = run(rounds=1, rtol=1e-12, max_steps=30)
-    M = _dense_penta(A0, H1, H2) + np.eye(T * D)  # prior band + unit anchor
+    M = _dense_penta(*(np.asarray(b) for b in bands)) + np.eye(T * D)  # band + unit anchor
 
     def f(z):
         P = fn(Y0 + z.reshape(T, D))
