@@ -474,15 +474,8 @@ def test_exact_lower_rounds_meet_the_bound_as_a_constrained_solve():
     def run(**kw):
         return solve_banded(fn, Y0, bands, *args, pts, lower, lw, 2, chord=False, **kw)
 
-    al = run(
-        rounds=12,
-        rtol=1e-12,
-        early_rtol=1e-12,
-        max_steps=30,
-        exact_lower=mask,
-        exact_points=False,
-        lower_tol=1e-9,
-    )
+    rounds = dict(rounds=12, rtol=1e-12, early_rtol=1e-12, max_steps=30, exact_points=False)
+    al = run(**rounds, exact_lower=mask, lower_tol=1e-9)
     pen = run(rounds=1, rtol=1e-12, max_steps=30)
     M = _dense_penta(*(np.asarray(b) for b in bands)) + np.eye(T * D)  # band + unit anchor
 
@@ -516,14 +509,6 @@ def test_exact_lower_rounds_meet_the_bound_as_a_constrained_solve():
     assert np.max(np.asarray(lower) - h_al) < 1e-7
     np.testing.assert_allclose(np.asarray(al.z).ravel(), ref.x, atol=1e-5)
     # bounds met to lower_tol after the first round: no further round (the penalty's solve)
-    met = run(
-        rounds=12,
-        rtol=1e-12,
-        early_rtol=1e-12,
-        max_steps=30,
-        exact_lower=mask,
-        exact_points=False,
-        lower_tol=1.0,
-    )
+    met = run(**rounds, exact_lower=mask, lower_tol=1.0)
     assert int(met.steps) == int(pen.steps)
     np.testing.assert_array_equal(np.asarray(met.z), np.asarray(pen.z))
