@@ -17,7 +17,8 @@ import edit_setup
 import mtex_jax as mj
 from cpu_devices import run_with_cpu_devices
 from mtex_jax import edit as E
-from mtex_jax.edit._banded import PointTargets, solve_banded
+from mtex_jax.edit._banded.normal import step_solve
+from mtex_jax.edit._banded.solve import PointTargets, solve_banded
 from mtex_jax.edit._fk import fk_positions
 from mtex_jax.edit._gn import join_points
 from mtex_jax.edit._jacobians import (
@@ -27,7 +28,6 @@ from mtex_jax.edit._jacobians import (
     kept_positions,
     root_free_channels,
 )
-from mtex_jax.edit._normal import step_solve
 from mtex_jax.edit._prior import WhitenedTextons, prior_residuals
 from mtex_jax.edit._solve import sub_skeleton
 from mtex_jax.edit._whiten import band_matvec, band_quad

@@ -24,7 +24,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..motion import FeatureMap, ground_axes, quat_conj, quat_rotate, yaw_quat
-from ._banded import PointTargets, solve_banded
+from ._banded.solve import PointTargets, solve_banded
 from ._constraints import Constraints, EditWeights
 from ._jacobians import channel_colouring, kept_positions, root_free_channels
 from ._prior import FrameSegments, WhitenedTextons, prior_hessian, smoothness_hessian
@@ -156,15 +156,16 @@ def solve_edit_gn(
             (:func:`~mtex_jax.edit._bucket.solve_gn_bucketed`: the padding frames are held by
             ``cons.pose_mask``, and have no prior, smoothness or floor terms); ``None``: all.
         move_root: let the root's horizontal trajectory change too, as a smooth world offset
-            per frame (:func:`~mtex_jax.edit._banded.solve_banded`); the root channels and the
+            per frame (:func:`~mtex_jax.edit._banded.solve.solve_banded`); the root channels and the
             start position of the result are re-derived from it (``result.start_position``).
         root_smooth: per metre of the offset's second difference (with ``move_root``).
         rounds: multiplier rounds; max_steps: Gauss–Newton steps per round.
-        rtol, early_rtol, xtol: stopping tests of :func:`~mtex_jax.edit._banded.solve_banded`.
+        rtol, early_rtol, xtol: stopping tests of :func:`~mtex_jax.edit._banded.solve.solve_banded`.
         exact_lower, exact_points, lower_tol: which constraints the multiplier rounds meet
             exactly (the floor and lift bounds; the exact point targets), and the tolerance of
-            the floor that ends the rounds (:func:`~mtex_jax.edit._banded.solve_banded`).
-        chord: reuse factorisations between steps (:func:`~mtex_jax.edit._banded.solve_banded`).
+            the floor that ends the rounds (:func:`~mtex_jax.edit._banded.solve.solve_banded`).
+        chord: reuse factorisations between steps
+            (:func:`~mtex_jax.edit._banded.solve.solve_banded`).
 
     Returns:
         :class:`EditResult` (``u`` holds the displacement ``Y − Y₀``).

@@ -46,11 +46,11 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ..linalg import block_penta_solve
-from ._jacobians import Colouring, frame_columns
-from ._normal import normal_solve
-from ._prior import smoothness_hessian
-from ._whiten import band_quad
+from ...linalg import block_penta_solve
+from .._jacobians import Colouring, frame_columns
+from .._prior import smoothness_hessian
+from .._whiten import band_quad
+from .normal import normal_solve
 
 __all__ = ["BandedSolve", "PointTargets", "solve_banded"]
 

@@ -1,6 +1,6 @@
 """The normal equations of a banded Gauss–Newton step: factor and solve, one frame per block.
 
-:func:`~mtex_jax.edit._banded.solve_banded` forms, at each fresh step, the prior's band plus
+:func:`~mtex_jax.edit._banded.solve.solve_banded` forms, at each fresh step, the prior's band plus
 the constraints' block-diagonal Gauss–Newton terms; this module factorises that matrix with
 :func:`~mtex_jax.linalg.block_penta_factor` (single precision for a double-precision problem,
 with a fallback) and solves for the step, under ``vmap`` one motion after the other.
@@ -13,8 +13,8 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array
 
-from ..linalg import BlockPentaCholesky, block_penta_factor, block_penta_solve, sym
-from ._whiten import band_matvec
+from ...linalg import BlockPentaCholesky, block_penta_factor, block_penta_solve, sym
+from .._whiten import band_matvec
 
 __all__ = ["factor_dtype", "normal_solve", "step_solve"]
 
