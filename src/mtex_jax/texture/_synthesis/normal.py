@@ -258,24 +258,10 @@ def observe(tex: Texton, x: Array, ok: Array, check: bool = True) -> Array:
     return y if check else jnp.where(ok, y, jnp.nan)
 
 
-def bent_texton(
-    tex: Texton,
-    v: Array,
-    start: Array,
-    fixed: tuple[Array, Array],
-    weighting: str,
-    decay: Array,
-    at: Array,
-) -> Array:
-    """Observations ``(l, D)`` of a texton held at ``start`` and at the ``fixed`` frames from
-    row ``at`` on, bent towards them near the end (design §10.11): equation ``j`` weighted
-    ``ω_j = exp(decay · max(at − j, 0))``, capped at ``ε^{-1/2}`` of the dtype. A failed
-    solve gives NaN frames (``check=False`` of :func:`observe`)."""
-    dt = tex.mu.dtype
-    length = v.shape[0] + 2
-    cap = 0.5 * float(np.log(1.0 / np.finfo(dt).eps))
+def transition_weights(length: int, decay: Array, at: Array, dtype) -> Array:
+    """The weights ``(length,)`` of a texton's least-squares equations when it bends towards
+    the frames held from row ``at`` on near its end (design §10.11): equation ``j`` weighted
+    ``ω_j = exp(decay · max(at − j, 0))``, capped at ``ε^{-1/2}`` of the dtype."""
+    cap = 0.5 * float(np.log(1.0 / np.finfo(dtype).eps))
     lag = jnp.maximum(at - jnp.arange(length), 0)
-    omega = jnp.exp(jnp.minimum(jnp.asarray(decay).astype(dt) * lag, cap))
-    w = v.astype(dt) @ tex.B.T
-    eqs = constrained_equations(tex, length, w, start, None, fixed, weighting, omega)
-    return observe(tex, *solve_constrained(tex, eqs, w), check=False)
+    return jnp.exp(jnp.minimum(jnp.asarray(decay).astype(dtype) * lag, cap))

@@ -71,7 +71,7 @@ from .checks import (
     transition_decay,
 )
 from .keyposes import key_pose_instances, next_texton
-from .normal import bent_texton
+from .normal import transition_weights
 from .path_noise import path_innovations, round_up
 from .paths import random_path
 from .texton_synthesis import Weighting, constrained_texton
@@ -183,11 +183,10 @@ def path_core(
         poses = jnp.where((t == at)[:, None], e[0], e[1])
         # check=False: a failed solve gives NaN, which synthesize_path reports from the host
         # (an in-program check is a host callback: the program could not be cached)
+        # the bend towards the end pair near the end (design §10.11), or spread (None)
+        omega = None if decay is None else transition_weights(length, decay, at, tex.mu.dtype)
         fixed = (t >= at, poses)
-        if decay is None:
-            y = constrained_texton(tex, vi, s, None, fixed, weighting, check=False)
-        else:  # the bend towards the end pair near the end (design §10.11)
-            y = bent_texton(tex, vi, s, fixed, weighting, decay, at)
+        y = constrained_texton(tex, vi, s, None, fixed, weighting, check=False, eq_weight=omega)
         if not blend:
             return y
         # residual outside the subspace, r = y − μ − C Cᵀ(y − μ), at the held frames, blended

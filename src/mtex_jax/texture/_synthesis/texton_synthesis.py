@@ -301,6 +301,7 @@ def constrained_texton(
     check: bool = True,
     n_valid: Array | None = None,
     bridge: bool = True,
+    eq_weight: Array | None = None,
 ) -> Array:
     """Constrained synthesis by perturb-and-MAP with the equation noise ``v`` ``(l−2, k)``.
 
@@ -322,15 +323,19 @@ def constrained_texton(
     rows ``n_valid − 2, n_valid − 1`` and the rows after it are held there (banded) or zero
     (bridge, open tail), so no free state follows the segment and the solution of its frames
     is that of the segment alone.
+
+    ``eq_weight`` ``(l,)``: weights of the least-squares equations (the transition bend,
+    design §10.11; :func:`~.normal.transition_weights`), solved by the banded path; ``None``:
+    all 1.
     """
     length = v.shape[0] + 2
     dt = tex.mu.dtype
     w = v.astype(dt) @ tex.B.T  # the noise in state units, w_j = B v_j (the one reader of v)
     short = length < 6 if n_valid is None else not bridge
-    if end is None or fixed is not None or short:
+    if end is None or fixed is not None or short or eq_weight is not None:
         if n_valid is not None and end is not None:  # the end pair at its rows of the bucket
             fixed, end = held_end(length, n_valid, end, fixed), None
-        eqs = constrained_equations(tex, length, w, start, end, fixed, weighting)
+        eqs = constrained_equations(tex, length, w, start, end, fixed, weighting, eq_weight)
         if n_valid is not None and eqs.tail is not None:  # an open tail stops at the segment
             eqs = eqx.tree_at(lambda e: e.tail, eqs, eqs.tail & (jnp.arange(length) < n_valid))
         return observe(tex, *solve_constrained(tex, eqs, w), check=check)
