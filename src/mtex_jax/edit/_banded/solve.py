@@ -325,19 +325,15 @@ def solve_banded(
             shift = s.shift - jnp.where(points.exact[:, None] & exact_points, err, 0.0)
             gap = lower - P[..., up]  # > 0: a bound violated
             if exact_lower is None:
-                ls, met = s.lshift, jnp.asarray(False)
-            else:  # only bounds shifted, every one met to lower_tol: no further round
-                ls = jnp.maximum(s.lshift + gap, 0.0)
-                met = ~jnp.any(exact_lower & (gap > lower_tol)) & (not exact_points)
-            return shift, ls, cost_of(z_new, shift, ls), met
+                return shift, s.lshift, cost_of(z_new, shift, s.lshift), jnp.asarray(False)
+            # only bounds shifted, every one met to lower_tol: no further round (nothing moves)
+            met = ~jnp.any(exact_lower & (gap > lower_tol)) & (not exact_points)
+            ls = jnp.where(met, s.lshift, jnp.maximum(s.lshift + gap, 0.0))
+            return shift, ls, jnp.where(met, c_new, cost_of(z_new, shift, ls)), met
 
         same = lambda: (s.shift, s.lshift, c_new, jnp.asarray(False))
         shift, lshift, c_next, met = lax.cond(new_round, next_round, same)
-        last = last | met
-        new_round = new_round & ~met
-        shift = jnp.where(met, s.shift, shift)
-        lshift = jnp.where(met, s.lshift, lshift)
-        c_next = jnp.where(met, c_new, c_next)
+        last, new_round = last | met, new_round & ~met
         return _Iterate(
             z=z_new,
             shift=shift,
