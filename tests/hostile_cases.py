@@ -299,8 +299,8 @@ _IMPLICIT: list[tuple[Any, ...]] = [
     ),
     (
         "implicit-track-particles-1e6",
-        lambda mj, model, m, key: mj.implicit.track(
-            key, model, mj.implicit.make_problem(key, model, m, n_frames=5), n_particles=10**7
+        lambda mj, model, m, key: mj.tracking.track(
+            key, model, mj.tracking.make_problem(key, model, m, n_frames=5), n_particles=10**7
         ),
         ValueError,
         r"n_particles = 10,000,000 exceeds",
@@ -308,8 +308,8 @@ _IMPLICIT: list[tuple[Any, ...]] = [
     ),
     (
         "implicit-track-particles-0",
-        lambda mj, model, m, key: mj.implicit.track(
-            key, model, mj.implicit.make_problem(key, model, m, n_frames=5), n_particles=0
+        lambda mj, model, m, key: mj.tracking.track(
+            key, model, mj.tracking.make_problem(key, model, m, n_frames=5), n_particles=0
         ),
         ValueError,
         r"n_particles must be (>=|≥) 1",

@@ -217,11 +217,11 @@ def test_implicit_synthesize_and_track_compile_per_bucket(cmu_motions):
 
     # the problems are made first (make_problem's own work is not the filter's)
     probs = {
-        n: mj.implicit.make_problem(jax.random.key(2), model, clips[1], n_frames=n)
+        n: mj.tracking.make_problem(jax.random.key(2), model, clips[1], n_frames=n)
         for n in (200, 50, 120, 333, 500)
     }
 
     def trk(n):
-        mj.implicit.track(key, model, probs[n], n_particles=16).error.block_until_ready()
+        mj.tracking.track(key, model, probs[n], n_particles=16).error.block_until_ready()
 
     assert _programs(trk, [50, 120, 333, 500], warm=200) <= 2

@@ -631,7 +631,7 @@ CHILD = textwrap.dedent(
     key = jax.random.key(0)
     walk = mj.load_example("walk")
     implicit = mj.implicit.learn([walk], 5)
-    problem = mj.implicit.make_problem(key, implicit, walk, n_frames=5)
+    problem = mj.tracking.make_problem(key, implicit, walk, n_frames=5)
     rewrite_npz(model, folder / "long.npz",
                 {"segment_lengths": lambda a: np.full_like(a["segment_lengths"], 10**12)}, None)
     with open(folder / "sparse.bvh", "wb") as fh:
@@ -652,7 +652,7 @@ CHILD = textwrap.dedent(
         "synthesize(n_frames=1e9)": lambda: mj.synthesize(key, tex, n_frames=10**9),
         "path_of_length(1e7)": lambda: mj.texture.path_of_length(tex, 0, 0, 10**7),
         "random_path(1e9)": lambda: mj.texture.random_path(key, tex, 10**9),
-        "track(1e7 particles)": lambda: mj.implicit.track(key, implicit, problem,
+        "track(1e7 particles)": lambda: mj.tracking.track(key, implicit, problem,
                                                            n_particles=10**7),
         "implicit n_components 1e6": lambda: mj.implicit.learn([walk], 5, n_components=10**6),
         "implicit window 1e4": lambda: mj.implicit.learn([walk.resample(3000.0)], 10**4),

@@ -25,7 +25,7 @@ SRC = Path(mtex_jax.__file__).resolve().parent
 LAYERS = {
     "core": 0,
     "linalg": 0,
-    "internal": 7,
+    "internal": 8,
     "motion": 1,
     "io": 2,
     "texture": 3,
@@ -33,7 +33,8 @@ LAYERS = {
     "metrics": 4,
     "edit": 5,
     "viz": 5,
-    "cli": 6,
+    "tracking": 6,
+    "cli": 7,
     "data": 0,
 }
 

@@ -7,8 +7,9 @@ concern, each with its own API:
 - :mod:`mtex_jax.motion`: ``Motion``, ``Skeleton``, rotations, forward kinematics, ``FeatureMap``;
 - :mod:`mtex_jax.io`: BVH, DeepMimic, the embedded clips, the model-file format;
 - :mod:`mtex_jax.texture`: Motion Texture (textons, learning, segmentation, synthesis);
-- :mod:`mtex_jax.implicit`: the implicit model and the particle-filter tracker;
+- :mod:`mtex_jax.implicit`: the implicit model (PCA tree, tree search, synthesis);
 - :mod:`mtex_jax.edit`: pose edits and cleaning (foot contacts, the floor) by optimisation;
+- :mod:`mtex_jax.tracking`: 3-D motion from 2-D keypoints with either model as the prior;
 - :mod:`mtex_jax.viz`: rendering and plots;
 - :mod:`mtex_jax.cli`: the ``mtex`` command.
 """
@@ -17,7 +18,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from .core import enable_compilation_cache as enable_compilation_cache
 from .edit import synthesize as synthesize
-from .implicit import ImplicitModel as ImplicitModel, track as track
+from .implicit import ImplicitModel as ImplicitModel
 from .io import (
     example_names as example_names,
     load_example as load_example,
@@ -40,6 +41,7 @@ from .texture import (
     learn as learn,
     load_texture as load_texture,
 )
+from .tracking import track as track
 from .viz import (
     plot_timeline as plot_timeline,
     render_filmstrip as render_filmstrip,

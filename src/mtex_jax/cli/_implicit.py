@@ -163,7 +163,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from ..implicit import make_problem, track
+    from ..tracking import ParticleFilter, make_problem, track
     from ..io import read_motion
 
     positive_int("particles", args.particles)
@@ -198,17 +198,15 @@ def _cmd_track(args: argparse.Namespace) -> int:
     results = {}
     for prior in ("implicit", "constant_velocity"):
         t0 = time.perf_counter()
-        r = track(
-            k_filter,
-            model,
-            problem,
-            prior=prior,
+        pf = ParticleFilter(
+            dynamics=prior,
             n_particles=args.particles,
             beta=args.beta,
             noise=args.noise,
             cv_noise=args.cv_noise,
             likelihood_sigma=args.likelihood_sigma,
         )
+        r = track(k_filter, model, problem, pf)
         results[prior] = r
         print(f"  {prior}: {time.perf_counter() - t0:.1f} s")
     imp = 1000 * np.asarray(results["implicit"].error)

@@ -1,12 +1,8 @@
 """Implicit probabilistic motion model (Sidenbladh, Black & Sigal 2002): the PCA-tree motion
-database, probabilistic tree search and the particle-filter tracker.
+database and probabilistic tree search (the particle-filter tracker that uses it as a prior is
+:mod:`mtex_jax.tracking`).
 """
 
-from ._camera import (
-    Camera as Camera,
-    decode_frame as decode_frame,
-    default_joints as default_joints,
-)
 from ._database import (
     MotionDatabase as MotionDatabase,
 )
@@ -24,14 +20,9 @@ from ._synthesis_api import (
     synthesize as synthesize,
     synthesize_poses as synthesize_poses,
 )
-from ._tracking import (
-    TrackingProblem as TrackingProblem,
-    TrackResult as TrackResult,
-    make_problem as make_problem,
-    track as track,
-)
 from ._tree import (
     sign_codes as sign_codes,
+    tree_sample_indices as tree_sample_indices,
 )
 from ._windows import (
     channel_importance as channel_importance,
@@ -41,23 +32,17 @@ from ._windows import (
 )
 
 __all__ = [
-    "Camera",
     "ImplicitModel",
     "MotionDatabase",
     "SynthesisConfig",
-    "TrackResult",
-    "TrackingProblem",
     "channel_importance",
-    "decode_frame",
-    "default_joints",
     "fade_weight",
     "joint_reach",
     "learn",
-    "make_problem",
     "pose_vectors",
     "sign_codes",
     "synthesize",
     "synthesize_poses",
-    "track",
+    "tree_sample_indices",
     "velocity_channels",
 ]

@@ -6,8 +6,6 @@ functions are built from, exposed so that tests can check them against independe
 without importing private modules. Nothing in the package imports this module.
 """
 
-# the implicit model: the tracker's prior and systematic resampling of particle weights
-from ..implicit._tracking import Prior as Prior, _systematic as systematic_resample
 
 # the implicit model: tree-sampling kernels, for eqx.debug.get_num_traces
 from ..implicit._tree import (
@@ -94,7 +92,6 @@ __all__ = [
     "DEEPMIMIC_FRAME_SIZE",
     "TEXTON_FIELDS",
     "TO_PLOT",
-    "Prior",
     "all_terms_traced",
     "available_cores",
     "block_tridiag_factor",
@@ -122,7 +119,6 @@ __all__ = [
     "solve_rows_unbatched",
     "standard_normal",
     "substitute_rows",
-    "systematic_resample",
     "tridiag_solve_rows",
     "usable_key_poses",
     "wrap_angle",

@@ -9,15 +9,16 @@ import pytest
 
 import mtex_jax as mj
 from mtex_jax.cli import main
-from mtex_jax.implicit import (
+from mtex_jax.implicit import ImplicitModel
+from mtex_jax.tracking import (
     Camera,
-    ImplicitModel,
+    ParticleFilter,
     decode_frame,
     default_joints,
     make_problem,
+    systematic,
     track,
 )
-from mtex_jax.internal import Prior, systematic_resample
 from mtex_jax.motion import forward_kinematics_arrays
 
 WINDOW = 10
@@ -86,7 +87,7 @@ def test_problem_observations(model, problem):
 def test_systematic_resampling_counts():
     w = jnp.array([0.5, 0.25, 0.125, 0.125, 0.0])
     for seed in range(5):
-        idx = np.asarray(systematic_resample(jax.random.PRNGKey(seed), w))
+        idx = np.asarray(systematic(jax.random.PRNGKey(seed), w))
         counts = np.bincount(idx, minlength=5)
         expected = 5 * np.asarray(w)  # N = 5 particles: each index N·w_i times, ± 1
         assert np.all(np.abs(counts - expected) < 1.0 + 1e-9)
@@ -97,12 +98,12 @@ def test_implicit_prior_beats_constant_velocity_with_300_particles(model, proble
     """The small version of the benchmark: same observations, 300 particles each, two seeds;
     the default database (recent weight 32, chosen for synthesis) beats constant velocity too,
     by less."""
-    priors: tuple[Prior, ...] = ("implicit", "constant_velocity")
+    priors = ("implicit", "constant_velocity")
     err: dict[str, list[float]] = {p: [] for p in priors}
     rel: dict[str, list[float]] = {p: [] for p in priors}
     for seed in (0, 1):
         for prior in priors:
-            r = track(jax.random.PRNGKey(seed), model, problem, prior=prior, n_particles=300)
+            r = track(jax.random.PRNGKey(seed), model, problem, dynamics=prior, n_particles=300)
             assert r.mean_joints.shape == problem.truth.shape
             assert np.all(np.isfinite(np.asarray(r.error)))
             err[prior].append(r.mean_error)
@@ -125,15 +126,21 @@ def test_implicit_prior_beats_constant_velocity_with_300_particles(model, proble
 def test_constant_velocity_needs_many_more_particles(model, problem):
     """Constant velocity with 3,000 particles is still not better than the implicit prior with
     300 (the paper: it needs about 10× more particles)."""
-    imp = track(jax.random.PRNGKey(0), model, problem, prior="implicit", n_particles=300)
-    cv = track(jax.random.PRNGKey(0), model, problem, prior="constant_velocity", n_particles=3000)
+    imp = track(jax.random.PRNGKey(0), model, problem, dynamics="implicit", n_particles=300)
+    cv = track(
+        jax.random.PRNGKey(0), model, problem, dynamics="constant_velocity", n_particles=3000
+    )
     assert imp.mean_error < cv.mean_error
 
 
 def test_tracking_bad_input(model, problem, salsa30):
     key = jax.random.PRNGKey(0)
-    with pytest.raises(ValueError, match="prior"):
-        track(key, model, problem, prior="kalman")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="dynamics"):
+        track(key, model, problem, dynamics="kalman")
+    with pytest.raises(TypeError, match="beside a method"):
+        track(key, model, problem, ParticleFilter(), n_particles=10)
+    with pytest.raises(TypeError, match="MotionTexture or an ImplicitModel"):
+        track(key, object(), problem)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="n_particles"):
         track(key, model, problem, n_particles=0)
     with pytest.raises(ValueError, match="beta"):

@@ -1,0 +1,46 @@
+"""Tracking: 3-D motion from 2-D joint observations, with either paper's model as the prior
+(design §12).
+
+- the observations: :class:`Camera`, :class:`TrackingProblem`, :func:`make_problem` (synthetic
+  problems from a clip, with missing joints, outliers and another body's bones);
+- the trackers, chosen by passing one to :func:`track`: :class:`ParticleFilter` (the implicit
+  model's prior, IP §3 and §6) and :class:`MapSmoother` (the texture's prior, a banded
+  Gauss–Newton MAP estimate, batch or fixed-lag);
+- the results: :class:`TrackResult` and the error measures (:func:`joint_errors`).
+"""
+
+from ._camera import Camera as Camera
+from ._particle import (
+    ParticleFilter as ParticleFilter,
+    decode_frame as decode_frame,
+    systematic as systematic,
+)
+from ._problem import (
+    TrackingProblem as TrackingProblem,
+    default_joints as default_joints,
+    make_problem as make_problem,
+    scaled_skeleton as scaled_skeleton,
+)
+from ._result import (
+    TrackResult as TrackResult,
+    joint_errors as joint_errors,
+    procrustes_errors as procrustes_errors,
+)
+from ._track import track as track
+from ._tracker import Tracker as Tracker
+
+__all__ = [
+    "Camera",
+    "ParticleFilter",
+    "TrackResult",
+    "Tracker",
+    "TrackingProblem",
+    "decode_frame",
+    "default_joints",
+    "joint_errors",
+    "make_problem",
+    "procrustes_errors",
+    "scaled_skeleton",
+    "systematic",
+    "track",
+]
