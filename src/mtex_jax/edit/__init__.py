@@ -13,6 +13,12 @@ from ._api import (
     edit_residuals as edit_residuals,
     segments_of as segments_of,
 )
+from ._banded.solve import (
+    BandedSolve as BandedSolve,
+    PointTargets as PointTargets,
+    solve_banded as solve_banded,
+)
+from ._banded.terms import FrameResidual as FrameResidual
 from ._clean import (
     CleanResult as CleanResult,
     clean as clean,
@@ -27,23 +33,29 @@ from ._constraints import (
     EditWeights as EditWeights,
     make_constraints as make_constraints,
 )
+from ._jacobians import channel_colouring as channel_colouring
 from ._prior import (
     FrameSegments as FrameSegments,
     WhitenedTextons as WhitenedTextons,
     frame_segments as frame_segments,
     prior_hessian as prior_hessian,
     prior_residuals as prior_residuals,
+    smoothness_hessian as smoothness_hessian,
 )
 from ._solve import EditResult as EditResult, solve_edit as solve_edit
 from ._synth import synthesize as synthesize
 
 __all__ = [
+    "BandedSolve",
     "CleanResult",
     "Constraints",
     "EditResult",
     "EditWeights",
+    "FrameResidual",
     "FrameSegments",
+    "PointTargets",
     "WhitenedTextons",
+    "channel_colouring",
     "clean",
     "clean_weights",
     "contact_plants",
@@ -57,6 +69,8 @@ __all__ = [
     "prior_residuals",
     "save_contacts",
     "segments_of",
+    "smoothness_hessian",
+    "solve_banded",
     "solve_edit",
     "swing_guidance",
     "synthesize",

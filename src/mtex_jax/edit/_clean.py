@@ -22,7 +22,7 @@ import numpy as np
 
 from ..core import as_array, load_arrays_json, save_arrays_json
 from ..metrics import ContactModel, PenetrationResult, SkatingResult
-from ..motion import Motion, Skeleton
+from ..motion import Motion, Skeleton, sub_skeleton
 from ..texture import MotionTexture, Synthesis
 from ._api import (
     check_constraints,
@@ -36,7 +36,7 @@ from ._banded.solve import PointTargets
 from ._bucket import solve_gn_bucketed
 from ._constraints import EditWeights, make_constraints
 from ._prior import WhitenedTextons
-from ._solve import EditResult, sub_skeleton
+from ._solve import EditResult
 
 __all__ = [
     "CleanResult",

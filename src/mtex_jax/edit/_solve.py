@@ -38,7 +38,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ..motion import FeatureMap, Skeleton, ground_axes, quat_rotate
+from ..motion import FeatureMap, Skeleton, ground_axes, quat_rotate, sub_skeleton
 from ._constraints import Constraints, EditWeights
 from ._fk import fk_positions
 from ._prior import (
@@ -240,25 +240,6 @@ def _measure(prob: _Problem, Y: Array, prior_cost: Array | None = None) -> dict[
         floor_depth=depth,
         prior_cost=prior_cost,
     )
-
-
-def sub_skeleton(skeleton: Skeleton, joints: tuple[int, ...]) -> tuple[Skeleton, tuple[int, ...]]:
-    """The joints and all their ancestors, as a skeleton of their own (parents remapped)."""
-    keep = set()
-    for j in joints:
-        while j >= 0 and j not in keep:
-            keep.add(j)
-            j = skeleton.parents[j]
-    order = tuple(sorted(keep | {0}))
-    new = {j: i for i, j in enumerate(order)}
-    sub = Skeleton(
-        names=tuple(skeleton.names[j] for j in order),
-        parents=tuple(-1 if skeleton.parents[j] < 0 else new[skeleton.parents[j]] for j in order),
-        offsets=tuple(skeleton.offsets[j] for j in order),
-        channels=tuple(skeleton.channels[j] for j in order),
-        up_axis=skeleton.up_axis,
-    )
-    return sub, order
 
 
 def problem(

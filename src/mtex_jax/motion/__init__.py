@@ -46,6 +46,7 @@ from ._skeleton import (
     ROTATION_CHANNELS as ROTATION_CHANNELS,
     Skeleton as Skeleton,
     ground_axes as ground_axes,
+    sub_skeleton as sub_skeleton,
 )
 
 __all__ = [
@@ -77,6 +78,7 @@ __all__ = [
     "quat_twist",
     "raw_features",
     "slerp",
+    "sub_skeleton",
     "unwrap_expmaps",
     "yaw_quat",
 ]

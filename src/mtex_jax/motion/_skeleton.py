@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["POSITION_CHANNELS", "ROTATION_CHANNELS", "Skeleton"]
+__all__ = ["POSITION_CHANNELS", "ROTATION_CHANNELS", "Skeleton", "sub_skeleton"]
 
 ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
@@ -186,3 +186,27 @@ def ground_axes(up_axis: int) -> tuple[int, int, int]:
 def _vec3(o: Any) -> tuple[float, float, float]:
     a, b, c = (float(x) for x in o)
     return (a, b, c)
+
+
+def sub_skeleton(skeleton: Skeleton, joints: tuple[int, ...]) -> tuple[Skeleton, tuple[int, ...]]:
+    """The joints and all their ancestors, as a skeleton of their own (parents remapped).
+
+    Returns:
+        ``(sub, order)``: the smaller skeleton and, for each of its joints, the index of the
+        joint in ``skeleton`` (increasing; the root first).
+    """
+    keep = set()
+    for j in joints:
+        while j >= 0 and j not in keep:
+            keep.add(j)
+            j = skeleton.parents[j]
+    order = tuple(sorted(keep | {0}))
+    new = {j: i for i, j in enumerate(order)}
+    sub = Skeleton(
+        names=tuple(skeleton.names[j] for j in order),
+        parents=tuple(-1 if skeleton.parents[j] < 0 else new[skeleton.parents[j]] for j in order),
+        offsets=tuple(skeleton.offsets[j] for j in order),
+        channels=tuple(skeleton.channels[j] for j in order),
+        up_axis=skeleton.up_axis,
+    )
+    return sub, order

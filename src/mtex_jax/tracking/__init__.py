@@ -10,6 +10,15 @@
 """
 
 from ._camera import Camera as Camera
+from ._keypoints import (
+    COCO17_NAMES as COCO17_NAMES,
+    Keypoints as Keypoints,
+    coco_joint_map as coco_joint_map,
+    problem_from_keypoints as problem_from_keypoints,
+    read_camera as read_camera,
+    read_keypoints as read_keypoints,
+    write_keypoints as write_keypoints,
+)
 from ._particle import (
     ParticleFilter as ParticleFilter,
     decode_frame as decode_frame,
@@ -30,17 +39,24 @@ from ._track import track as track
 from ._tracker import Tracker as Tracker
 
 __all__ = [
+    "COCO17_NAMES",
     "Camera",
+    "Keypoints",
     "ParticleFilter",
     "TrackResult",
     "Tracker",
     "TrackingProblem",
+    "coco_joint_map",
     "decode_frame",
     "default_joints",
     "joint_errors",
     "make_problem",
+    "problem_from_keypoints",
     "procrustes_errors",
+    "read_camera",
+    "read_keypoints",
     "scaled_skeleton",
     "systematic",
     "track",
+    "write_keypoints",
 ]

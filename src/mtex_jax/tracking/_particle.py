@@ -24,6 +24,32 @@ kinematics of the particle's pose, batched over particles; ``c`` the observation
 ``0`` for a missing joint; ``s`` = ``likelihood_sigma``), record the posterior means, and
 resample systematically. One ``lax.scan`` over frames, ``vmap`` over particles; all randomness
 comes from explicit keys.
+
+Proposals (:attr:`ParticleFilter.proposal`, design §12.4). ``"bootstrap"`` (the default, the
+paper's filter) samples from the prior and weights by the likelihood. Monocular observations
+pin the root's depth only through the body's apparent size, which the prior's small
+innovations cannot follow: once the cloud has drifted in depth it does not come back. The
+``"gauss_newton"`` proposal lets the data move the body. Its target adds to the prior a
+*root diffusion*: after the prior's step, the root moves by ``u ~ N(0, σ_r² I₃)`` and the
+heading turns by ``v ~ N(0, σ_h²)`` (``root_noise``, ``heading_noise``; the horizontal part and
+the turn accumulate, the height is the pose vector's own each frame; the window, which the
+prior reads, keeps the prior's pose vectors). The move is rigid: every joint is translated by
+``u`` and turned by ``v`` about the vertical through the root, so it needs no second forward
+kinematics. The proposal for ``θ = (u, v)`` is the Laplace approximation of
+``p(o_t | θ) N(θ; 0, Σ)``: ``gn_steps`` Gauss–Newton (IRLS) steps from ``θ = 0`` on the
+confidence-weighted reprojection error, then a draw from ``N(θ*, H⁻¹)`` (``H`` the
+Gauss–Newton Hessian at ``θ*``). The weight ``p(o_t | θ) N(θ; 0, Σ) / N(θ; θ*, H⁻¹)`` is the
+exact importance weight of that draw for the diffused model (the pose is drawn from the prior,
+whose density cancels): resampling keeps the filter consistent for the diffused model, and the
+weight approximates the predictive likelihood ``p(o_t | particle at t−1, its pose at t)``,
+exactly so where the projection is linear in ``θ`` and the likelihood Gaussian. The bootstrap
+proposal can run the same diffused model blind (``root_noise > 0``).
+
+Likelihoods (:attr:`ParticleFilter.likelihood`): ``"gaussian"`` (above), or ``"student_t"``, a
+bivariate Student-t per joint, ``−(ν + 2)/2 · Σ_k c_k log(1 + ‖r_k‖² / ν)`` with
+``r_k = (π(x_k) − o_k) / s`` and ``ν = dof``, whose weight on a detection 100 px off is small
+(against outliers; IRLS weights ``c_k (ν + 2) / (ν + ‖r_k‖²)`` in the Gauss–Newton steps).
+A joint with confidence 0 counts nowhere, whatever its pixels hold.
 """
 
 from __future__ import annotations
@@ -53,9 +79,19 @@ from ._problem import TrackingProblem
 from ._result import TrackResult, joint_errors
 from ._tracker import Tracker
 
-__all__ = ["Dynamics", "ParticleFilter", "decode_frame", "run_particle_filter", "systematic"]
+__all__ = [
+    "Dynamics",
+    "ParticleFilter",
+    "decode_frame",
+    "gauss_newton_root",
+    "rigid_move",
+    "robust_loglik",
+    "run_particle_filter",
+    "systematic",
+]
 
 Dynamics = Literal["implicit", "constant_velocity"]
+_GN_NOISE = 0.03  # default root (m) and heading (rad) diffusion per frame of gauss_newton
 
 
 class ParticleFilter(Tracker):
@@ -75,6 +111,19 @@ class ParticleFilter(Tracker):
         leaf: leaf rule of the tree search (``"uniform"`` or ``"weighted"``).
         candidates: tree walks per particle and frame (see :meth:`ImplicitModel.sample`;
             1 = the paper's sampler).
+        proposal: ``"bootstrap"`` (the paper's: sample the prior, weight by the likelihood)
+            or ``"gauss_newton"`` (the root moved towards the observations, design §12.4;
+            module notes).
+        likelihood: ``"gaussian"`` or ``"student_t"`` (robust; module notes). ``None``: the
+            proposal's default, Gaussian for the bootstrap filter, Student-t for
+            Gauss–Newton.
+        dof: degrees of freedom ``ν`` of the Student-t likelihood.
+        gn_steps: Gauss–Newton steps per particle and frame (``"gauss_newton"``).
+        root_noise: ``σ_r``, metres per frame, of the root diffusion (module notes). ``None``:
+            the proposal's default, 0 for the bootstrap filter (the paper's model), 0.03 for
+            Gauss–Newton, which needs it positive.
+        heading_noise: ``σ_h``, radians per frame, of the heading diffusion; ``None``: 0 for
+            the bootstrap filter, 0.03 for Gauss–Newton (0: the root's position only).
     """
 
     n_particles: int = eqx.field(static=True, default=300)
@@ -85,8 +134,22 @@ class ParticleFilter(Tracker):
     likelihood_sigma: float = eqx.field(static=True, default=20.0)
     leaf: str = eqx.field(static=True, default="uniform")
     candidates: int = eqx.field(static=True, default=1)
+    proposal: str = eqx.field(static=True, default="bootstrap")
+    likelihood: str | None = eqx.field(static=True, default=None)
+    dof: float = eqx.field(static=True, default=4.0)
+    gn_steps: int = eqx.field(static=True, default=2)
+    root_noise: float | None = eqx.field(static=True, default=None)
+    heading_noise: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self) -> None:
+        for name, allowed in (
+            ("proposal", ("bootstrap", "gauss_newton")),
+            ("likelihood", (None, "gaussian", "student_t")),
+        ):
+            if getattr(self, name) not in allowed:
+                raise ValueError(
+                    f"ParticleFilter: {name} must be one of {allowed}, got {getattr(self, name)!r}"
+                )
         if self.dynamics not in ("implicit", "constant_velocity"):
             raise ValueError(
                 f"ParticleFilter: dynamics must be 'implicit' or 'constant_velocity', "
@@ -96,7 +159,7 @@ class ParticleFilter(Tracker):
             raise ValueError(
                 f"ParticleFilter: leaf must be 'uniform' or 'weighted', got {self.leaf!r}"
             )
-        for name in ("n_particles", "candidates"):
+        for name in ("n_particles", "candidates", "gn_steps"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | np.integer):
                 raise ValueError(f"ParticleFilter: {name} must be an integer, got {v!r}")
@@ -112,6 +175,31 @@ class ParticleFilter(Tracker):
         ls = self.likelihood_sigma
         if not (np.isfinite(ls) and ls > 0):
             raise ValueError(f"ParticleFilter: likelihood_sigma must be positive, got {ls}")
+        if isinstance(self.dof, bool) or not (np.isfinite(self.dof) and self.dof > 0):
+            raise ValueError(f"ParticleFilter: dof must be positive and finite, got {self.dof!r}")
+        for name in ("root_noise", "heading_noise"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not (np.isfinite(v) and v >= 0)):
+                raise ValueError(f"ParticleFilter: {name} must be finite and ≥ 0, got {v!r}")
+        if self.proposal == "gauss_newton" and self.diffusion[0] <= 0:
+            raise ValueError("ParticleFilter: root_noise must be positive for gauss_newton")
+
+    @property
+    def diffusion(self) -> tuple[float, float]:
+        """``(σ_r, σ_h)``: the root and heading diffusion (module notes), defaults filled in."""
+        gn = self.proposal == "gauss_newton"
+        r, h = self.root_noise, self.heading_noise
+        return (
+            float((_GN_NOISE if gn else 0.0) if r is None else r),
+            float((_GN_NOISE if gn else 0.0) if h is None else h),
+        )
+
+    @property
+    def likelihood_kind(self) -> str:
+        """The likelihood, the proposal's default filled in."""
+        if self.likelihood is not None:
+            return self.likelihood
+        return "student_t" if self.proposal == "gauss_newton" else "gaussian"
 
     def run(self, key: PRNGKeyArray, prior: ImplicitModel, problem: TrackingProblem) -> TrackResult:
         """The filter on ``problem`` (module notes)."""
@@ -169,6 +257,82 @@ def systematic(key: PRNGKeyArray, w: Float[Array, " N"]) -> Int[Array, " N"]:
     return jnp.minimum(jnp.searchsorted(cdf, u, side="left"), n - 1).astype(jnp.int32)
 
 
+def rigid_move(
+    x: Float[Array, "K 3"], root: Float[Array, " 3"], theta: Float[Array, " q"], up: Array
+) -> Float[Array, "K 3"]:
+    """Joints ``x`` with the root moved by ``θ[:3]`` and, if ``θ`` has a fourth entry, the
+    heading turned by ``θ[3]`` about the vertical ``up`` through ``root`` (module notes)."""
+    if theta.shape[0] > 3:
+        x = root + quat_rotate(yaw_quat(theta[3], up), x - root)
+    return x + theta[:3]
+
+
+def robust_loglik(
+    r: Float[Array, "K 2"], conf: Float[Array, " K"], likelihood: str, dof: Array
+) -> tuple[Array, Array]:
+    """Log-likelihood (up to a constant) of the normalised residuals ``r`` and the IRLS weight
+    of each joint (module notes); joints with confidence 0 count for nothing."""
+    on = conf > 0
+    r2 = jnp.where(on, jnp.sum(jnp.where(on[:, None], r, 0.0) ** 2, axis=-1), 0.0)
+    if likelihood == "gaussian":
+        return -0.5 * jnp.sum(conf * r2), conf
+    return -0.5 * (dof + 2) * jnp.sum(conf * jnp.log1p(r2 / dof)), conf * (dof + 2) / (dof + r2)
+
+
+def gauss_newton_root(
+    camera: Camera,
+    obs: Float[Array, "K 2"],
+    conf: Float[Array, " K"],
+    x: Float[Array, "K 3"],
+    root: Float[Array, " 3"],
+    precision: Float[Array, " q"],
+    sigma: Array,
+    up: Array,
+    steps: int,
+    likelihood: str = "gaussian",
+    dof: Array | float = 4.0,
+) -> tuple[Array, Array]:
+    """Gauss–Newton (IRLS) steps from ``θ = 0`` on the rigid root move ``θ`` (:func:`rigid_move`)
+    of one particle: minimise ``−log p(o | θ) + ½ θᵀ diag(precision) θ`` (design §12.4).
+
+    Args:
+        camera: the camera.
+        obs: ``(K, 2)`` observed pixels.
+        conf: ``(K,)`` their confidences (0: missing, whatever the pixel).
+        x: ``(K, 3)`` the particle's joints after the prior's step.
+        root: ``(3,)`` its root position.
+        precision: ``(q,)`` prior precision of ``θ`` (``q = 3``: position; ``4``: and heading).
+        sigma: pixel scale ``s`` of the likelihood.
+        up: ``(3,)`` the vertical.
+        steps: Gauss–Newton steps.
+        likelihood: ``"gaussian"`` or ``"student_t"``.
+        dof: the Student-t's degrees of freedom.
+
+    Returns:
+        ``θ*`` ``(q,)`` and the Gauss–Newton Hessian ``H = Jᵀ W J + diag(precision)`` at it
+        (``W``: the IRLS weights there), the proposal's precision.
+    """
+    on = (conf > 0)[:, None]
+    obs = jnp.where(on, obs, 0.0)
+    dof = jnp.asarray(dof, obs.dtype)
+
+    def resid(th):
+        return jnp.where(on, (camera.project(rigid_move(x, root, th, up)) - obs) / sigma, 0.0)
+
+    def normal_eqs(th):
+        r, jac = resid(th), jax.jacfwd(resid)(th)  # (K, 2), (K, 2, q)
+        w = robust_loglik(r, conf, likelihood, dof)[1]
+        h = jnp.einsum("k,kai,kaj->ij", w, jac, jac) + jnp.diag(precision)
+        return h, jnp.einsum("k,kai,ka->i", w, jac, r) + precision * th
+
+    def step(th, _):
+        h, g = normal_eqs(th)
+        return th - jnp.linalg.solve(h, g), None
+
+    theta, _ = lax.scan(step, jnp.zeros_like(precision), None, length=steps)
+    return theta, normal_eqs(theta)[0]
+
+
 def _track_impl(
     db: MotionDatabase,
     fm: FeatureMap,
@@ -182,6 +346,11 @@ def _track_impl(
     likelihood_sigma: Array,
     leaf: str,
     candidates: int,
+    proposal: str = "bootstrap",
+    likelihood: str = "gaussian",
+    dof: Array | float = 4.0,
+    gn_steps: int = 2,
+    diffusion: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[Array, Array, Array, Array]:
     dim = fm.dim
     dt = db.windows.dtype
@@ -196,6 +365,27 @@ def _track_impl(
     pos = jnp.broadcast_to(problem.init_position, (n, 3))
     head = jnp.broadcast_to(problem.init_heading, (n,))
     dec = jax.vmap(lambda y, p, h: decode_frame(fm, y, p, h))
+    up = jnp.zeros(3, dt).at[fm.skeleton.up_axis].set(1.0)
+    # the rigid root move θ: its standard deviation (the heading's only if it diffuses)
+    q = 4 if (proposal == "bootstrap" or diffusion[1] > 0) else 3
+    theta_std = jnp.asarray([diffusion[0]] * 3 + [diffusion[1]], dt)[:q]
+    dof = jnp.asarray(dof, dt)
+
+    def gn_move(key, obs, conf, x, root):
+        """One particle's Gauss–Newton proposal: moved joints, θ and log weight."""
+        prec = 1.0 / theta_std**2
+        m, h = gauss_newton_root(
+            problem.camera, obs, conf, x, root, prec, likelihood_sigma, up, gn_steps,
+            likelihood, dof,
+        )  # fmt: skip
+        chol = jnp.linalg.cholesky(h)
+        e = jax.random.normal(key, m.shape, dt)
+        th = m + jax.scipy.linalg.solve_triangular(chol.T, e, lower=False)  # ~ N(m, H⁻¹)
+        log_q = -0.5 * e @ e + jnp.sum(jnp.log(jnp.diag(chol)))
+        xs = rigid_move(x, root, th, up)
+        r = (problem.camera.project(xs) - obs) / likelihood_sigma
+        ll = robust_loglik(r, conf, likelihood, dof)[0]
+        return xs, th, ll - 0.5 * jnp.sum(prec * th * th) - log_q
 
     def step(carry, inp):
         win, pos, head, k = carry
@@ -213,8 +403,20 @@ def _track_impl(
         win = jnp.concatenate([win[:, 1:], psi[:, None]], axis=1)
         pos, head, rot, lp = dec(pose, pos, head)
         x = forward_kinematics_arrays(fm.skeleton, pos, rot, lp)[:, jidx]  # (N, K, 3)
-        r = (problem.camera.project(x) - obs) / likelihood_sigma
-        loglik = -0.5 * jnp.sum(conf[None, :, None] * r * r, axis=(1, 2))
+        k_move = jax.random.split(jax.random.fold_in(k_noise, 1), n)
+        th = jnp.zeros((n, q), dt)  # the root's rigid move (module notes)
+        if proposal == "gauss_newton":
+            x, th, loglik = jax.vmap(gn_move, (0, None, None, 0, 0))(k_move, obs, conf, x, pos)
+        else:
+            if max(diffusion) > 0:  # the diffused model, sampled blind
+                th = theta_std * jax.vmap(lambda k: jax.random.normal(k, (q,), dt))(k_move)
+                x = jax.vmap(rigid_move, (0, 0, 0, None))(x, pos, th, up)
+            r = (problem.camera.project(x) - obs) / likelihood_sigma
+            if likelihood == "gaussian":
+                loglik = -0.5 * jnp.sum(conf[None, :, None] * r * r, axis=(1, 2))
+            else:
+                loglik = jax.vmap(lambda r: robust_loglik(r, conf, likelihood, dof)[0])(r)
+        pos, head = pos + th[:, :3], (head + th[:, 3] if q > 3 else head)
         w = jax.nn.softmax(loglik)
         mean_x = jnp.einsum("n,nkc->kc", w, x)
         mean_psi = w @ psi
@@ -271,7 +473,12 @@ def run_particle_filter(
         init_window=problem.init_window,
         init_position=problem.init_position,
         init_heading=jnp.asarray(problem.init_heading),
-        observations=pad_frames(np.asarray(problem.observations), n_pad, axis=0),
+        # a missing joint's pixel may hold anything (check_problem): 0, so that 0 · r² is 0
+        observations=pad_frames(
+            np.where(np.asarray(problem.confidence)[..., None] > 0, problem.observations, 0.0),
+            n_pad,
+            axis=0,
+        ),
         confidence=pad_frames(np.asarray(problem.confidence), n_pad, axis=0),
     )
     out = _track_jit(
@@ -287,6 +494,11 @@ def run_particle_filter(
         jnp.asarray(pf.likelihood_sigma, dt),
         pf.leaf,
         int(pf.candidates),
+        pf.proposal,
+        pf.likelihood_kind,
+        jnp.asarray(pf.dof, dt),
+        int(pf.gn_steps),
+        pf.diffusion,
     )
     mean_x, mean_psi, mean_root, ess = (np.asarray(a)[:T] for a in out)
     errs: tuple[np.ndarray | None, ...] = (None, None, None)

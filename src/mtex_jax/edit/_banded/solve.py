@@ -51,6 +51,7 @@ from .._jacobians import Colouring, frame_columns
 from .._prior import smoothness_hessian
 from .._whiten import band_quad
 from .normal import normal_solve
+from .terms import FrameResidual, residual_rows
 
 __all__ = ["BandedSolve", "PointTargets", "solve_banded"]
 
@@ -151,6 +152,8 @@ def solve_banded(
     xtol: float = 1e-4,
     colouring: Colouring | None = None,
     chord: bool = True,
+    terms: tuple[FrameResidual, ...] = (),
+    linear: Float[Array, "T D"] | None = None,
 ) -> BandedSolve:
     """Minimise the banded objective (module notes) by Gauss–Newton, with multiplier rounds.
 
@@ -198,6 +201,12 @@ def solve_banded(
             gains less than half of what its model promised; ``False``: every step is a
             fresh Gauss–Newton step (for problems far from linear, e.g. cleaning, whose
             active sets change from step to step).
+        terms: further per-frame residual terms of the kept positions, robust ones included
+            (:class:`~mtex_jax.edit.FrameResidual`; a tracker's 2-D reprojection); each fresh
+            step takes their reweighted Gauss–Newton model.
+        linear: ``(T, D)`` a linear term ``Σ linear ⊙ z`` of the objective: with it the prior is
+            absolute, ``½ (Y₀+z)ᵀ H (Y₀+z) + …`` up to a constant, when ``linear`` is the prior's
+            gradient at ``Y₀`` (``None``: the prior prices the displacement ``z`` alone).
 
     Returns:
         :class:`BandedSolve`.
@@ -236,7 +245,12 @@ def solve_banded(
         low = jnp.maximum(lower + ls - P[..., up], 0.0)
         v = jnp.where(held[:, None], delta, z * var_ch)
         hz = band_quad(bands, v) + jnp.sum((anchor * v) ** 2)
-        return 0.5 * (hz + jnp.sum(w2 * r * r) + jnp.sum((lw * low) ** 2))
+        c = 0.5 * (hz + jnp.sum(w2 * r * r) + jnp.sum((lw * low) ** 2))
+        for term in terms:
+            c = c + term.loss(term.residual(P))
+        if linear is not None:
+            c = c + jnp.sum(linear * v)
+        return c
 
     def gn_step(z: Array, shift: Array, ls: Array, active: Array):
         fc = frame_columns(fn, edited(z), free_ch, colouring)
@@ -259,6 +273,15 @@ def solve_banded(
             wd = points.weight[ns:].reshape(T, F, 3)
             rows.append((Jp[ns:].reshape(T, F, 3, D) * wd[..., None]).reshape(T, 3 * F, D))
             res.append((r[ns:].reshape(T, F, 3) * wd).reshape(T, 3 * F))
+        if terms:
+            Jall = jnp.stack([fc.axis(a) for a in range(3)], axis=2)  # (T, K, 3, D)
+            if move_root is not None:
+                (c0, c1), (h0, h1) = move_root
+                Jall = Jall.at[:, :, h0, c0].set(1.0).at[:, :, h1, c1].set(1.0)
+            for term in terms:
+                rt, et = residual_rows(term, P, Jall)
+                rows.append(rt)
+                res.append(et)
         Jf, rf = jnp.concatenate(rows, axis=1), jnp.concatenate(res, axis=1)
         A = jnp.einsum("trd,tre->tde", Jf, Jf)
         b = jnp.einsum("trd,tr->td", Jf, jnp.einsum("tre,te->tr", Jf, z) - rf)
@@ -270,9 +293,8 @@ def solve_banded(
             A = A.at[points.frame[:ns]].add(A_p)
             b = b.at[points.frame[:ns]].add(b_p)
         H0, H1, H2 = bands
-        z_star, fac, ok = normal_solve(
-            H0, A, H1, H2, var_ch, anchor, held, delta, -(b * var_ch), active
-        )
+        rhs = -(b * var_ch) if linear is None else (linear - b) * var_ch
+        z_star, fac, ok = normal_solve(H0, A, H1, H2, var_ch, anchor, held, delta, rhs, active)
         return z_star - delta, fac, ok
 
     keep_rows = (~held)[:, None].astype(dt) * var_ch[None, :]

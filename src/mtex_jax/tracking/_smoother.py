@@ -1,0 +1,598 @@
+"""The texture as a tracking prior: a MAP smoother, batch or fixed-lag (design §12.2–§12.3).
+
+The estimate of the tracker's coordinates ``X`` (:mod:`._body`) minimises
+
+.. code-block:: text
+
+    Σ_{t,k} c_{tk} ρ(‖π(x_k(X_t, b)) − o_{tk}‖² / σ²)  +  prior(X)  +  bones(b)
+
+with the robust reprojection term of :mod:`._reprojection`, a quadratic motion prior of
+:mod:`._priors` (the texture's, along a segmentation), and, when the person's bones are
+estimated, a Gaussian prior on their log-scales. The poses are found by the banded
+Gauss–Newton solver of edits (:func:`~mtex_jax.edit.solve_banded`) with the reprojection as a
+pluggable residual term: every frame's joints depend on that frame's row alone, so each step is
+one block-banded factorisation, ``O(T·D³)``.
+
+*Batch.* A per-frame rigid fit (:mod:`._start`) gives the first estimate, or the known initial
+window is held before the first frame. A first round uses the second-difference prior alone;
+then, each round, the texture's segmentation of the current estimate is found again
+(semi-Markov Viterbi, :meth:`~mtex_jax.texture.MotionTexture.segment`; a clip shorter than
+the texture's shortest segment takes the single texton that explains it best) and the
+texture's prior along it is minimised. With ``bones``, each round ends with a dense
+Gauss–Newton step on the bone scales and, without extrinsics, the floor.
+
+*Fixed-lag.* Frame ``t`` is final once frame ``t + L`` is seen: each new frame is
+extrapolated from the two before it, and the window of the last ``L + 1`` frames, with the two
+final frames before it held, is solved again. The window's texton is the one whose dynamics
+explain it best. A new frame costs one solve of ``L + 3`` frames: ``O(L)``, not ``O(T)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ..core import MAX_GENERATED_FRAMES, bucket_length, check_count
+from ..edit import (
+    FrameSegments,
+    PointTargets,
+    WhitenedTextons,
+    channel_colouring,
+    frame_segments,
+    prior_residuals,
+    solve_banded,
+)
+from ..motion import Motion, ground_axes, quat_rotate, yaw_quat
+from ..texture import MotionTexture
+from ._body import Body
+from ._priors import MotionPrior, SmoothPrior, TexturePrior, root_weights
+from ._problem import TrackingProblem
+from ._reprojection import PixelLoss, Reprojection, StudentT
+from ._result import TrackResult, joint_errors
+from ._start import rigid_start
+from ._tracker import Tracker
+
+__all__ = ["MapSmoother", "TRACK_FRAMES"]
+
+#: the shape-bucket step of a smoother's clip (design §11): a 150-frame clip is solved as 192
+#: frames, not as the 1,024 of the package's default bucket (a step costs time in proportion)
+TRACK_FRAMES = 64
+
+
+class MapSmoother(Tracker):
+    """MAP tracking with a texture's prior (module notes): the options of
+    :func:`~mtex_jax.tracking.track` for a :class:`~mtex_jax.texture.MotionTexture`.
+
+    Attributes:
+        lag: ``None``: batch (the whole clip at once); ``L ≥ 1``: fixed-lag, each frame final
+            ``L`` frames later.
+        prior: the motion prior (:class:`TexturePrior`; :class:`SmoothPrior` for a baseline
+            without the texture).
+        pixel_loss: the robust loss of the reprojection (:class:`StudentT` by default).
+        pixel_sigma: pixel standard deviation (``None``: the problem's ``pixel_noise``, at
+            least 1 px).
+        rounds: batch: rounds with the texture's prior, each after a new segmentation.
+        max_steps: Gauss–Newton steps per round (batch).
+        lag_steps: Gauss–Newton steps per new frame (fixed-lag).
+        root_accel: standard deviation of the root's horizontal acceleration, m/s²
+            (measured on the training clips of the salsa split: 6.1 and 6.3 at 30 Hz).
+        turn_accel: the same of its heading, rad/s² (measured there: 66).
+        bones: estimate the person's bone lengths (a global scale and one correction per
+            bone, with Gaussian priors on their logarithms of standard deviations
+            ``scale_sd`` and ``bone_sd``).
+        scale_sd: prior standard deviation of the log of the global scale.
+        bone_sd: prior standard deviation of the log of each bone's correction.
+        floor: ``"known"``: the world's floor is the skeleton's (a camera with extrinsics);
+            ``"estimate"``: a camera without extrinsics, the floor height is estimated.
+        n_headings: headings tried per frame by the rigid start.
+    """
+
+    lag: int | None = eqx.field(static=True, default=None)
+    prior: MotionPrior = eqx.field(default_factory=TexturePrior)
+    pixel_loss: PixelLoss = eqx.field(default_factory=StudentT)
+    pixel_sigma: float | None = eqx.field(static=True, default=None)
+    rounds: int = eqx.field(static=True, default=2)
+    max_steps: int = eqx.field(static=True, default=12)
+    root_accel: float = eqx.field(static=True, default=6.0)
+    turn_accel: float = eqx.field(static=True, default=60.0)
+    bones: bool = eqx.field(static=True, default=False)
+    scale_sd: float = eqx.field(static=True, default=0.05)
+    bone_sd: float = eqx.field(static=True, default=0.05)
+    floor: str = eqx.field(static=True, default="known")
+    n_headings: int = eqx.field(static=True, default=16)
+    lag_steps: int = eqx.field(static=True, default=6)
+
+    def __check_init__(self) -> None:
+        for name in ("rounds", "max_steps", "lag_steps", "n_headings"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+                raise ValueError(f"MapSmoother: {name} must be an integer ≥ 1, got {v!r}")
+        if self.lag is not None and (
+            isinstance(self.lag, bool) or not isinstance(self.lag, int | np.integer) or self.lag < 1
+        ):
+            raise ValueError(f"MapSmoother: lag must be None or an integer ≥ 1, got {self.lag!r}")
+        for name in ("root_accel", "turn_accel", "scale_sd", "bone_sd"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (np.isfinite(v) and v > 0):
+                raise ValueError(f"MapSmoother: {name} must be positive and finite, got {v!r}")
+        if self.pixel_sigma is not None and not (
+            np.isfinite(self.pixel_sigma) and self.pixel_sigma > 0
+        ):
+            raise ValueError(f"MapSmoother: pixel_sigma must be positive, got {self.pixel_sigma}")
+        if self.floor not in ("known", "estimate"):
+            raise ValueError(
+                f"MapSmoother: floor must be 'known' or 'estimate', got {self.floor!r}"
+            )
+        if not isinstance(self.prior, MotionPrior):
+            raise TypeError(f"MapSmoother: prior must be a MotionPrior, got {self.prior!r}")
+        if not isinstance(self.pixel_loss, PixelLoss):
+            raise TypeError(f"MapSmoother: pixel_loss must be a PixelLoss, got {self.pixel_loss!r}")
+
+    def run(self, key: PRNGKeyArray, prior: Any, problem: TrackingProblem) -> TrackResult:
+        """MAP-track ``problem`` with the texture ``prior`` (module notes)."""
+        del key  # deterministic
+        return _smooth(self, prior, problem)
+
+
+# --------------------------------------------------------------------------- the solves
+class _Frame(eqx.Module):
+    """What one banded solve needs besides the estimate (one shape per bucket)."""
+
+    body: Body
+    tx: WhitenedTextons
+    reproj: Reprojection
+    root_w: Float[Array, " D"]
+    bone_scale: Float[Array, " J"]
+    floor: Float[Array, ""]
+    fps: float = eqx.field(static=True)
+
+
+def _solve(
+    fr: _Frame,
+    prior: MotionPrior,
+    seg: FrameSegments,
+    X0: Array,
+    held: Array,
+    prev: tuple[Array, Array] | None,
+    n_valid: Array,
+    max_steps: int,
+) -> tuple[Array, Array]:
+    """One round: the prior's quadratic at ``X₀`` plus the reprojection, by banded GN."""
+    body = fr.body
+    T, D = X0.shape
+    dt = X0.dtype
+    Y0 = body.observations(X0, *(prev or (None, None)))
+    bands, grad = prior.quadratic(fr.tx, seg, X0, Y0, fr.root_w, fr.fps, n_valid)
+    fn = lambda X: body.positions(X, fr.bone_scale, fr.floor)
+    Ks = len(body.order)
+    empty = PointTargets(
+        slot=jnp.zeros((0,), jnp.int32),
+        frame=jnp.zeros((0,), jnp.int32),
+        target=jnp.zeros((0, 3), dt),
+        weight=jnp.zeros((0, 3), dt),
+        exact=jnp.zeros((0,), bool),
+    )
+    sol = solve_banded(
+        fn,
+        X0,
+        bands,
+        jnp.full((D,), 1e-4, dt),
+        jnp.ones((D,), dt),
+        held,
+        X0,
+        empty,
+        jnp.full((T, Ks), -jnp.inf, dt),
+        jnp.zeros((), dt),
+        body.feature_map.skeleton.up_axis,
+        n_valid=n_valid,
+        rounds=1,
+        max_steps=max_steps,
+        rtol=1e-7,
+        xtol=1e-6,
+        colouring=channel_colouring(body.feature_map, body.order),
+        terms=(fr.reproj,),
+        linear=grad,
+    )
+    return X0 + sol.z, sol.cost
+
+
+_solve_jit = eqx.filter_jit(_solve)
+
+
+def _best_texton(tx: WhitenedTextons, Y: Array, n_valid: Array) -> Array:
+    """The texton whose dynamics (alone, no segment start) explain ``Y`` best."""
+    T = Y.shape[0]
+    N = tx.A1.shape[0]
+    pos = jnp.arange(T, dtype=jnp.int32) + 2
+
+    def nll(i: Array) -> Array:
+        lab = jnp.full((T,), i, jnp.int32)
+        e, g, o = prior_residuals(tx, FrameSegments(lab, lab, pos), Y, n_valid)
+        return jnp.sum(e * e) + jnp.sum(g * g) + jnp.sum(o * o)
+
+    return jnp.argmin(jax.vmap(nll)(jnp.arange(N, dtype=jnp.int32)))
+
+
+def _single(i: int, T: int) -> FrameSegments:
+    lab = jnp.full((T,), i, jnp.int32)
+    return FrameSegments(lab, lab, jnp.arange(T, dtype=jnp.int32) + 2)
+
+
+# --------------------------------------------------------------------------- bones
+def _bone_step(fr: _Frame, X: Array, n_valid: Array, sd: Array, estimate_floor: bool) -> _Frame:
+    """Gauss–Newton (optimistix's Levenberg–Marquardt) on the bones' log-scales (and the floor)
+    with the poses fixed, the reprojection reweighted at the current estimate."""
+    body, rep = fr.body, fr.reproj
+    dt = X.dtype
+    J = fr.bone_scale.shape[0]
+    ok = (jnp.arange(X.shape[0]) < n_valid).astype(dt)
+    r0 = rep.residual(body.positions(X, fr.bone_scale, fr.floor))
+    sw = jnp.sqrt(rep.weights(r0)) * jnp.repeat(ok[:, None], 1, axis=1)
+    scale_sd, bone_sd = sd[0], sd[1]
+
+    def residuals(theta: Array, _args: Any) -> Array:
+        log_s, c, fl = theta[0], theta[1 : 1 + J], theta[1 + J]
+        b = jnp.exp(log_s + c)
+        r = rep.residual(body.positions(X, b, fl if estimate_floor else fr.floor))
+        return jnp.concatenate([(r * sw).reshape(-1), (log_s / scale_sd)[None], c / bone_sd])
+
+    log_b = jnp.log(fr.bone_scale)
+    theta0 = jnp.concatenate([jnp.zeros((1,), dt), log_b, fr.floor[None]])
+    sol = optx.least_squares(
+        residuals,
+        optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8),
+        theta0,
+        max_steps=30,
+        throw=False,
+    )
+    th = sol.value
+    new_b = jnp.exp(th[0] + th[1 : 1 + J])
+    new_f = th[1 + J] if estimate_floor else fr.floor
+    return eqx.tree_at(lambda f: (f.bone_scale, f.floor), fr, (new_b, new_f))
+
+
+_bone_step_jit = eqx.filter_jit(_bone_step)
+
+
+# --------------------------------------------------------------------------- driver
+def _init_frames(body: Body, problem: TrackingProblem) -> tuple[np.ndarray, np.ndarray, float]:
+    """The known initial window as two held frames of ``X`` (and the frame before them)."""
+    fm = body.feature_map
+    Yi = np.asarray(problem.init_window, dtype=np.float64)
+    if Yi.shape != (2, fm.dim):
+        raise ValueError(
+            f"track: the problem's initial window has shape {Yi.shape}; a texture smoother "
+            f"needs (2, {fm.dim}): make the problem with this texture"
+        )
+    up, h0, h1 = ground_axes(fm.skeleton.up_axis)
+    act = np.asarray(fm.active)
+    raw = Yi * np.asarray(fm.scale)[act] + np.asarray(fm.offset)[act]
+    c0, c1, cy = body.root_cols
+    p1 = np.asarray(problem.init_position, dtype=np.float64)
+    psi1 = float(np.asarray(problem.init_heading))
+    psi0 = psi1 - raw[1, cy]
+    local = np.zeros(3)
+    local[h0], local[h1] = raw[1, c0], raw[1, c1]
+    e_up = np.zeros(3)
+    e_up[up] = 1.0
+    step = np.asarray(
+        quat_rotate(yaw_quat(jnp.asarray(psi0), jnp.asarray(e_up)), jnp.asarray(local))
+    )
+    p0 = p1 - step
+    X = np.asarray(body.coordinates(jnp.asarray(Yi), jnp.asarray(p0), jnp.asarray(psi0)))
+    return X, p0, psi0
+
+
+def _segmentation(
+    texture: MotionTexture, tx: WhitenedTextons, Y: np.ndarray, T_pad: int, n: int
+) -> FrameSegments:
+    """The texture's segmentation of the first ``n`` frames, padded to ``T_pad`` frames (the
+    padding continues the last segment); a clip the texture cannot segment takes its best
+    single texton."""
+    try:
+        rows = texture.segment(jnp.asarray(Y[:n])).to_list()
+    except ValueError:
+        rows = []
+    if not rows or sum(r[1] for r in rows) != n:
+        i = int(_best_texton(tx, jnp.asarray(Y), jnp.asarray(n)))
+        return _single(i, T_pad)
+    lengths = [r[1] for r in rows]
+    lengths[-1] += T_pad - n
+    return frame_segments(np.array(lengths), np.array([r[2] for r in rows]))
+
+
+def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackResult:
+    if not isinstance(texture, MotionTexture):
+        raise TypeError(
+            f"track: a MapSmoother takes a MotionTexture prior, got {type(texture).__name__}"
+        )
+    if texture.feature_map is None:
+        raise ValueError("track: the texture was learned from arrays (no feature map)")
+    fm = texture.feature_map
+    T = problem.n_frames
+    check_count(T, "track: frames to track", MAX_GENERATED_FRAMES)
+    body = Body.of(fm, problem.joints)
+    dt = jnp.asarray(texture.textons.mu).dtype
+    fps = float(fm.fps)
+    D = fm.dim
+    tx = WhitenedTextons.of(texture.textons, dt)
+    sigma = float(opts.pixel_sigma or max(float(np.asarray(problem.pixel_noise)), 1.0))
+    obs = np.asarray(problem.observations, dtype=np.float64)
+    conf = np.asarray(problem.confidence, dtype=np.float64)
+    known_floor = opts.floor == "known"
+    X_start, floor = rigid_start(
+        body,
+        problem.camera,
+        jnp.asarray(obs, dt),
+        jnp.asarray(conf, dt),
+        sigma,
+        opts.pixel_loss,
+        fps=fps,
+        n_headings=opts.n_headings,
+        floor_known=known_floor,
+    )
+    n_init = 0
+    prev = None
+    if problem.has_init:
+        X_init, p0, psi0 = _init_frames(body, problem)
+        n_init = 2
+        X_start = np.concatenate([X_init, X_start])
+        prev = (jnp.asarray(p0, dt), jnp.asarray(psi0, dt))
+    root_w = jnp.asarray(root_weights(D, body.root_cols, fps, opts.root_accel, opts.turn_accel), dt)
+    J = fm.skeleton.n_joints
+    if opts.lag is None:
+        X, fr, labels = _batch(
+            opts,
+            texture,
+            body,
+            tx,
+            problem,
+            X_start,
+            n_init,
+            prev,
+            obs,
+            conf,
+            sigma,
+            root_w,
+            floor,
+            dt,
+        )
+    else:
+        X, fr, labels = _fixed_lag(
+            opts,
+            texture,
+            body,
+            tx,
+            problem,
+            X_start,
+            n_init,
+            prev,
+            obs,
+            conf,
+            sigma,
+            root_w,
+            floor,
+            dt,
+        )
+    X = np.asarray(X)
+    Xt = jnp.asarray(X[n_init:], dt)
+    P = np.asarray(body.observed(Xt, fr.bone_scale, fr.floor))
+    Y = np.asarray(body.observations(jnp.asarray(X, dt), *(prev or (None, None))))[n_init:]
+    up, h0, h1 = ground_axes(fm.skeleton.up_axis)
+    c0, c1, cy = body.root_cols
+    root = np.zeros((T, 3))
+    root[:, h0], root[:, h1] = X[n_init:, c0], X[n_init:, c1]
+    act = np.asarray(fm.active)
+    root[:, up] = Y[:, 2] * np.asarray(fm.scale)[act[2]] + np.asarray(fm.offset)[act[2]]
+    root[:, up] += float(fr.floor)
+    motion = fm.decode(jnp.asarray(Y, dt), jnp.asarray(root[0], dt), jnp.asarray(X[n_init, cy], dt))
+    motion = Motion(
+        motion.skeleton, motion.fps, jnp.asarray(root, dt), motion.rotations, motion.local_positions
+    )
+    errs: tuple[Any, ...] = (None, None, None)
+    if problem.truth is not None:
+        errs = joint_errors(P, np.asarray(problem.truth))
+    bones = np.asarray(fr.bone_scale) if opts.bones else None
+    put = lambda a: None if a is None else jax.device_put(jnp.asarray(a, dt))
+    del J
+    return TrackResult(
+        prior="texture" if isinstance(opts.prior, TexturePrior) else "smooth",
+        n_particles=0,
+        mean_joints=put(P),
+        mean_pose=put(Y),
+        mean_root=put(root),
+        error=put(errs[0]),
+        error_root_relative=put(errs[1]),
+        error_aligned=put(errs[2]),
+        labels=None if labels is None else jax.device_put(jnp.asarray(labels, jnp.int32)),
+        bone_scale=None if bones is None else put(bones),
+        motion=motion,
+    )
+
+
+def _frame_inputs(body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps):
+    """The solve's inputs of a clip padded to ``T_pad`` frames (confidence 0 in the padding and
+    in the held initial frames)."""
+    T = obs.shape[0]
+    K = obs.shape[1]
+    o = np.zeros((T_pad, K, 2))
+    c = np.zeros((T_pad, K))
+    o[n_init : n_init + T], c[n_init : n_init + T] = obs, conf
+    rep = Reprojection(
+        camera=problem.camera,
+        slots=body.slots,
+        observations=jnp.asarray(o, dt),
+        confidence=jnp.asarray(c, dt),
+        sigma=jnp.asarray(sigma, dt),
+    )
+    return _Frame(
+        body=body,
+        tx=tx,
+        reproj=rep,
+        root_w=root_w,
+        bone_scale=jnp.ones((body.feature_map.skeleton.n_joints,), dt),
+        floor=jnp.asarray(floor, dt),
+        fps=fps,
+    )
+
+
+def _pad_rows(X: np.ndarray, T_pad: int) -> np.ndarray:
+    return (
+        np.concatenate([X, np.repeat(X[-1:], T_pad - X.shape[0], axis=0)]) if T_pad > len(X) else X
+    )
+
+
+def _batch(
+    opts, texture, body, tx, problem, X_start, n_init, prev, obs, conf, sigma, root_w, floor, dt
+):
+    n = X_start.shape[0]
+    T_pad = bucket_length(n, TRACK_FRAMES)
+    fps = float(body.feature_map.fps)
+    fr = _frame_inputs(body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps)
+    fr = eqx.tree_at(lambda f: f.reproj.pixel_loss, fr, opts.pixel_loss)
+    X = jnp.asarray(_pad_rows(X_start, T_pad), dt)
+    held = jnp.asarray(np.arange(T_pad) < n_init) | jnp.asarray(np.arange(T_pad) >= n)
+    nv = jnp.asarray(n)
+    sd = jnp.asarray([opts.scale_sd, opts.bone_sd], dt)
+    est_floor = opts.floor == "estimate"
+    smooth = SmoothPrior()
+    seg0 = _single(0, T_pad)
+    first = smooth if isinstance(opts.prior, TexturePrior) else opts.prior
+    X, _ = _solve_jit(fr, first, seg0, X, held, prev, nv, opts.max_steps)
+    if opts.bones or est_floor:
+        fr = _bone_step_jit(fr, X, nv, sd, est_floor) if opts.bones else _floor_only(fr, X, nv)
+    labels = None
+    if isinstance(opts.prior, TexturePrior) or opts.prior.segmented:
+        for _ in range(opts.rounds):
+            Y = np.asarray(body.observations(X, *(prev or (None, None))))
+            seg = _segmentation(texture, tx, Y, T_pad, n)
+            X, _ = _solve_jit(fr, opts.prior, seg, X, held, prev, nv, opts.max_steps)
+            if opts.bones or est_floor:
+                fr = (
+                    _bone_step_jit(fr, X, nv, sd, est_floor)
+                    if opts.bones
+                    else _floor_only(fr, X, nv)
+                )
+            labels = np.asarray(seg.labels)[n_init:n]
+    return np.asarray(X)[:n], fr, labels
+
+
+def _floor_only(fr: _Frame, X: Array, n_valid: Array) -> _Frame:
+    """The floor alone re-estimated (bones fixed): the bone step with the bones' priors tight."""
+    sd = jnp.asarray([1e-6, 1e-6], X.dtype)
+    return _bone_step_jit(fr, X, n_valid, sd, True)
+
+
+def _lag_run(
+    fr: _Frame,
+    X_all: Array,
+    obs: Array,
+    conf: Array,
+    t0: int,
+    n: Array,
+    lag: int,
+    max_steps: int,
+) -> Array:
+    """Frames ``t0 … n − 1`` one at a time (module notes): a ``fori_loop`` over new frames, each
+    a banded solve of the window of ``lag + 3`` frames ending at the new one."""
+    W = lag + 3
+    dt = X_all.dtype
+    body = fr.body
+    c0, c1, cy = body.root_cols
+    up, h0, h1 = ground_axes(body.feature_map.skeleton.up_axis)
+    held = jnp.arange(W) < 2
+    root = jnp.zeros(X_all.shape[1], dt).at[jnp.array([c0, c1, cy])].set(1.0)
+    prior = TexturePrior()
+
+    def step(t: Array, X_all: Array) -> Array:
+        s = t - lag - 2  # the window's first (held) row
+        velocity = X_all[t - 1] - X_all[t - 2]
+        new = X_all[t - 1] + velocity * (root + 0.5 * (1.0 - root))
+        X_all = X_all.at[t].set(new)
+        Xw = jax.lax.dynamic_slice_in_dim(X_all, s, W)
+        ow = jax.lax.dynamic_slice_in_dim(obs, s, W)
+        cw = jax.lax.dynamic_slice_in_dim(conf, s, W) * (~held)[:, None]
+        before = X_all[jnp.maximum(s - 1, 0)]
+        p_prev = jnp.zeros(3, dt).at[h0].set(before[c0]).at[h1].set(before[c1])
+        prev = (p_prev, before[cy])
+        rep = eqx.tree_at(lambda r: (r.observations, r.confidence), fr.reproj, (ow, cw))
+        frw = eqx.tree_at(lambda f: f.reproj, fr, rep)
+        nv = jnp.asarray(W)
+        Y = body.observations(Xw, *prev)
+        seg = _single(0, W)
+        i = _best_texton(fr.tx, Y, nv)
+        seg = FrameSegments(seg.labels * 0 + i, seg.dyn_labels * 0 + i, seg.position)
+        Xs, _ = _solve(frw, prior, seg, Xw, held, prev, nv, max_steps)
+        return jax.lax.dynamic_update_slice_in_dim(X_all, Xs, s, axis=0)
+
+    return jax.lax.fori_loop(t0, n, step, X_all)
+
+
+_lag_run_jit = eqx.filter_jit(_lag_run)
+
+
+def _fixed_lag(
+    opts, texture, body, tx, problem, X_start, n_init, prev, obs, conf, sigma, root_w, floor, dt
+):
+    L = int(opts.lag)
+    n = X_start.shape[0]
+    fps = float(body.feature_map.fps)
+    X0 = np.asarray(X_start)
+    t0 = n_init
+    fr_first = None
+    if n_init < 2:  # no known state: the first frames in one batch solve
+        t0 = min(n, L + 2)
+        first = dataclasses.replace(opts, lag=None)
+        Xb, fr_first, _ = _batch(
+            first,
+            texture,
+            body,
+            tx,
+            problem,
+            X0[:t0],
+            0,
+            None,
+            obs[:t0],
+            conf[:t0],
+            sigma,
+            root_w,
+            floor,
+            dt,
+        )
+        X0 = np.concatenate([np.asarray(Xb), X0[t0:]])
+        floor = float(fr_first.floor)
+    if t0 >= n:
+        return X0, fr_first, None
+    T_pad = bucket_length(n, TRACK_FRAMES)
+    fr = _frame_inputs(body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps)
+    fr = eqx.tree_at(lambda f: f.reproj.pixel_loss, fr, opts.pixel_loss)
+    if fr_first is not None:
+        fr = eqx.tree_at(lambda f: f.bone_scale, fr, fr_first.bone_scale)
+    # rows before the window's start are never read before they are written; pad the front so
+    # that every window of lag + 3 frames fits
+    front = max(0, L + 2 - t0)
+    Xp = np.concatenate([np.repeat(X0[:1], front, axis=0), X0, np.repeat(X0[-1:], T_pad - n, 0)])
+    op = np.concatenate(
+        [np.zeros((front, *fr.reproj.observations.shape[1:])), np.asarray(fr.reproj.observations)]
+    )
+    cp = np.concatenate(
+        [np.zeros((front, fr.reproj.confidence.shape[1])), np.asarray(fr.reproj.confidence)]
+    )
+    X = _lag_run_jit(
+        fr,
+        jnp.asarray(Xp, dt),
+        jnp.asarray(op, dt),
+        jnp.asarray(cp, dt),
+        t0 + front,
+        jnp.asarray(n + front),
+        L,
+        opts.lag_steps,
+    )
+    return np.asarray(X)[front : front + n], fr, None
