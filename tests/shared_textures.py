@@ -34,3 +34,14 @@ def salsa30_texture(cmu_dir: Path) -> mj.MotionTexture:
         tmin=30, tmax=90, state_dim=6, fps=30.0, threshold=0.3, max_iter=2, **PAPER
     )
     return mj.learn(clips, cfg)
+
+
+@functools.cache
+def salsa_tracking_texture() -> mj.MotionTexture:
+    """The defaults (``LearnConfig(fps=30.0)``) learned from the shipped salsa clips 60_01 to
+    60_04 at 30 Hz (training clips of the fixed split); it carries their contact model. The
+    prior of the tracking tests, which track the held-out 60_12."""
+    from mtex_jax.io import load_salsa
+
+    clips = [load_salsa(n) for n in ("60_01", "60_02", "60_03", "60_04")]
+    return mj.learn(clips, mj.LearnConfig(fps=30.0))

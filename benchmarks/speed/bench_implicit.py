@@ -44,11 +44,12 @@ from implicit_report import write_report
 from implicit_settings import CMU, EVAL_CLIPS, N_PROBES, RESULTS, TUNE_CLIP, WINDOW
 
 from _common import command
-from mtex_jax.implicit import ImplicitModel, SynthesisConfig, make_problem, track
+from mtex_jax.implicit import ImplicitModel, SynthesisConfig
 from mtex_jax.internal import (
     sample_exact_traced as exact_sample_indices,
     sample_tree_traced as tree_sample_indices,
 )
+from mtex_jax.tracking import make_problem, track
 
 
 # --------------------------------------------------------------------------- helpers
@@ -316,7 +317,7 @@ def bench_tracking(salsa30, quick: bool) -> dict:
             model,
             problem,
             tune_seeds,
-            prior="implicit",
+            dynamics="implicit",
             n_particles=300,
             beta=beta,
             noise=noise,
@@ -349,7 +350,7 @@ def bench_tracking(salsa30, quick: bool) -> dict:
                 model,
                 problem,
                 tune_seeds,
-                prior="constant_velocity",
+                dynamics="constant_velocity",
                 n_particles=n,
                 cv_noise=cvn,
                 likelihood_sigma=ls,
@@ -383,7 +384,7 @@ def bench_tracking(salsa30, quick: bool) -> dict:
         problem = problem_for(model, i)
         for n in imp_counts:
             r = _run(
-                model, problem, eval_seeds, prior="implicit", n_particles=n, **tuned["implicit"]
+                model, problem, eval_seeds, dynamics="implicit", n_particles=n, **tuned["implicit"]
             )
             runs.append({"clip": i, "prior": "implicit", "n_particles": n, **r})
             print(
@@ -394,7 +395,9 @@ def bench_tracking(salsa30, quick: bool) -> dict:
             )
         for n in cv_eval:
             params = tuned[f"constant_velocity_{min(n, max(cv_counts))}"]
-            r = _run(model, problem, eval_seeds, prior="constant_velocity", n_particles=n, **params)
+            r = _run(
+                model, problem, eval_seeds, dynamics="constant_velocity", n_particles=n, **params
+            )
             runs.append({"clip": i, "prior": "constant_velocity", "n_particles": n, **r})
             print(
                 f"[tracking] clip {i} const.vel. {n:5d}: "

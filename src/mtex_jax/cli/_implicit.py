@@ -1,7 +1,9 @@
 """``mtex implicit-synth`` and ``mtex track``: the implicit motion model on the command line.
 
-:func:`register` adds both sub-commands to the main parser (:mod:`mtex_jax.cli`). Bad input raises
-``ValueError`` with a one-line message; the main CLI prints it and exits with status 2.
+:func:`register` adds both sub-commands to the main parser (:mod:`mtex_jax.cli`). ``mtex track``
+has two forms: ``CLIPS... --test CLIP`` (the particle filters on a synthetic problem, here) and
+``MODEL --keypoints FILE`` (real keypoints with a texture's smoother, :mod:`._track`). Bad input
+raises ``ValueError`` with a one-line message; the main CLI prints it and exits with status 2.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core import atomic_write
+from . import _track
 from ._validators import (
     add_force,
     float_arg,
@@ -159,12 +162,54 @@ def _synthesis_config(args: argparse.Namespace):
     return SynthesisConfig(**opts)
 
 
+#: the options of the particle-filter form of ``track`` and their defaults (``None`` in the
+#: parser, so that the keypoint form can refuse them when they are given)
+_PF_DEFAULTS: dict[str, Any] = {
+    "particles": 300,
+    "frames": None,
+    "start": 0,
+    "seed": 0,
+    "window": 10,
+    "fps": 30.0,
+    "beta": 0.1,
+    "noise": 0.1,
+    "cv_noise": 0.1,
+    "likelihood_sigma": 20.0,
+}
+
+
 def _cmd_track(args: argparse.Namespace) -> int:
+    if args.keypoints is not None:
+        given = [k for k in _PF_DEFAULTS if k != "fps" and getattr(args, k) is not None]
+        if given:
+            raise ValueError(
+                f"--{given[0].replace('_', '-')} belongs to the particle-filter form (mtex track "
+                "CLIPS... --test CLIP), not to --keypoints"
+            )
+        return _track.run(args)
+    for name in _track.KEYPOINT_OPTIONS:
+        if getattr(args, name) not in (None, False):
+            option = "-o/--output" if name == "output" else f"--{name}"
+            raise ValueError(
+                f"{option} belongs to the keypoint form (mtex track MODEL --keypoints FILE)"
+            )
+    if args.test is None:
+        raise ValueError(
+            "give --test CLIP (the particle filters on a synthetic problem) or --keypoints FILE "
+            "(track real keypoints with a texture model)"
+        )
+    for name, value in _PF_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    return _track_particles(args)
+
+
+def _track_particles(args: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from ..tracking import ParticleFilter, make_problem, track
     from ..io import read_motion
+    from ..tracking import ParticleFilter, make_problem, track
 
     positive_int("particles", args.particles)
     if args.frames is not None:
@@ -364,36 +409,65 @@ def register(subparsers) -> None:
 
     s = subparsers.add_parser(
         "track",
-        help="track a held-out clip from 2-D joint projections with a particle filter",
-        description="Project the joints of the test clip through a pin-hole camera, add pixel "
-        "noise and track its 3-D pose with a particle filter, once with the implicit-model "
-        "prior and once with a constant-velocity prior; print the 3-D error per frame.",
-    )
-    s.add_argument("clips", nargs="+", help=_CLIP_HELP)
-    s.add_argument("--test", required=True, help="the clip to track (should not be in CLIPS)")
-    s.add_argument("--particles", type=int_arg, default=300, help="particles (default 300)")
-    s.add_argument("--frames", type=int_arg, default=None, help="frames to track (default all)")
-    s.add_argument("--start", type=int_arg, default=0, help="first frame of the initial window")
-    s.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
-    s.add_argument("--window", type=int_arg, default=10, help="window length d (default 10)")
-    s.add_argument("--fps", type=float_arg, default=30.0, help="frame rate (default 30)")
-    s.add_argument("--beta", type=float_arg, default=0.1, help="implicit prior temperature")
-    s.add_argument(
-        "--noise", type=float_arg, default=0.1, help="implicit prior pose noise (γ units)"
+        help="track 3-D motion from 2-D joints: real keypoints with a texture model, or a "
+        "particle-filter comparison on a held-out clip",
+        description="Two forms. 'mtex track MODEL --keypoints FILE -o out.bvh': track the 3-D "
+        "motion behind 2-D keypoints (COCO results JSON, .npz or mtex-keypoints JSON) with the "
+        "texture model's MAP smoother; a camera file gives the focal length, principal point "
+        "and optionally the pose (without a pose, or without --camera, a level camera and the "
+        "floor is estimated); write the motion (BVH), per-frame 3-D joints and textons (JSON), "
+        "a 3-D player page (HTML) and a keypoint overlay (PNG). "
+        "'mtex track CLIPS... --test CLIP': project the joints of the test clip through a "
+        "pin-hole camera, add pixel noise and track its 3-D pose with a particle filter, once "
+        "with the implicit-model prior and once with a constant-velocity prior; print the 3-D "
+        "error per frame.",
     )
     s.add_argument(
+        "clips",
+        nargs="+",
+        metavar="MODEL|CLIPS",
+        help=f"with --keypoints: one texture model (.npz); otherwise {_CLIP_HELP}",
+    )
+    _track.add_arguments(s)
+    g = s.add_argument_group("the particle-filter comparison (mtex track CLIPS... --test CLIP)")
+    g.add_argument("--test", default=None, help="the clip to track (should not be in CLIPS)")
+    g.add_argument("--particles", type=int_arg, default=None, help="particles (default 300)")
+    g.add_argument("--frames", type=int_arg, default=None, help="frames to track (default all)")
+    g.add_argument(
+        "--start", type=int_arg, default=None, help="first frame of the initial window (0)"
+    )
+    g.add_argument("--seed", type=seed_arg, default=None, help="random seed (default 0)")
+    g.add_argument("--window", type=int_arg, default=None, help="window length d (default 10)")
+    s.add_argument(
+        "--fps",
+        type=float_arg,
+        default=None,
+        help="frame rate of the clips (default 30); with --keypoints: the keypoints' (default "
+        "the file's; COCO files have none: the model's)",
+    )
+    g.add_argument("--beta", type=float_arg, default=None, help="implicit prior temperature (0.1)")
+    g.add_argument(
+        "--noise", type=float_arg, default=None, help="implicit prior pose noise (γ units, 0.1)"
+    )
+    g.add_argument(
         "--cv-noise",
         type=float_arg,
-        default=0.1,
-        help="constant-velocity noise (units of the database acceleration std)",
+        default=None,
+        help="constant-velocity noise (units of the database acceleration std, 0.1)",
     )
-    s.add_argument("--pixel-noise", type=float_arg, default=2.0, help="observation noise (px)")
-    s.add_argument(
+    g.add_argument(
         "--likelihood-sigma",
         type=float_arg,
-        default=20.0,
+        default=None,
         help="pixel std assumed by the likelihood (default 20)",
     )
-    s.add_argument("--plot", default=None, help="write a PNG of the error per frame")
+    g.add_argument("--plot", default=None, help="write a PNG of the error per frame")
+    s.add_argument(
+        "--pixel-noise",
+        type=float_arg,
+        default=2.0,
+        help="pixel noise (px, default 2): added to the synthetic problem; with --keypoints "
+        "the detections' standard deviation",
+    )
     add_force(s)
     s.set_defaults(func=_cmd_track)

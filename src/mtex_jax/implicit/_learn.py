@@ -73,7 +73,7 @@ def learn(
             transition then starts from a closer pose and velocity, so its fading offset
             adds less motion (design §7.5). The default 32 was chosen, together with the
             synthesis foot lock, on validation folds of the training clips. For tracking
-            (:func:`~mtex_jax.implicit.track`) use ``0``: the paper's window distance tracks
+            (:func:`~mtex_jax.tracking.track`) use ``0``: the paper's window distance tracks
             better (the documentation's results page has both).
 
     Returns:

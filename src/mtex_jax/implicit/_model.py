@@ -86,7 +86,7 @@ class ImplicitModel(eqx.Module):
 
     Build with :func:`~mtex_jax.implicit.learn`. Sample successors with :meth:`sample` (tree,
     IP Eq. 7–8) or :meth:`sample_exact` (IP Eq. 3); generate motion with :meth:`synthesize`
-    (IP §5); track with :func:`~mtex_jax.implicit.track` (IP §3, §6). Arrays are JAX arrays in
+    (IP §5); track with :func:`~mtex_jax.tracking.track` (IP §3, §6). Arrays are JAX arrays in
     the dtype of the training data (as allowed by the JAX configuration).
 
     The database's fields (``window``, ``n_components``, ``leaf_max``, ``clip_sizes``,

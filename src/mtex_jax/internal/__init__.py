@@ -6,7 +6,6 @@ functions are built from, exposed so that tests can check them against independe
 without importing private modules. Nothing in the package imports this module.
 """
 
-
 # the implicit model: tree-sampling kernels, for eqx.debug.get_num_traces
 from ..implicit._tree import (
     _sample_exact_traced as sample_exact_traced,

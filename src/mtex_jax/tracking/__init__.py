@@ -24,25 +24,45 @@ from ._particle import (
     decode_frame as decode_frame,
     systematic as systematic,
 )
+from ._priors import (
+    MotionPrior as MotionPrior,
+    SmoothPrior as SmoothPrior,
+    TexturePrior as TexturePrior,
+)
 from ._problem import (
     TrackingProblem as TrackingProblem,
     default_joints as default_joints,
     make_problem as make_problem,
     scaled_skeleton as scaled_skeleton,
 )
+from ._reprojection import (
+    Gaussian as Gaussian,
+    Huber as Huber,
+    PixelLoss as PixelLoss,
+    StudentT as StudentT,
+)
 from ._result import (
     TrackResult as TrackResult,
     joint_errors as joint_errors,
     procrustes_errors as procrustes_errors,
 )
+from ._smoother import MapSmoother as MapSmoother
 from ._track import track as track
 from ._tracker import Tracker as Tracker
 
 __all__ = [
     "COCO17_NAMES",
     "Camera",
+    "Gaussian",
+    "Huber",
     "Keypoints",
+    "MapSmoother",
+    "MotionPrior",
     "ParticleFilter",
+    "PixelLoss",
+    "SmoothPrior",
+    "StudentT",
+    "TexturePrior",
     "TrackResult",
     "Tracker",
     "TrackingProblem",

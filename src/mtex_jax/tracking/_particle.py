@@ -26,35 +26,33 @@ resample systematically. One ``lax.scan`` over frames, ``vmap`` over particles; 
 comes from explicit keys.
 
 Proposals (:attr:`ParticleFilter.proposal`, design §12.4). ``"bootstrap"`` (the default, the
-paper's filter) samples from the prior and weights by the likelihood. Monocular observations
-pin the root's depth only through the body's apparent size, which the prior's small
-innovations cannot follow: once the cloud has drifted in depth it does not come back. The
-``"gauss_newton"`` proposal lets the data move the body. Its target adds to the prior a
-*root diffusion*: after the prior's step, the root moves by ``u ~ N(0, σ_r² I₃)`` and the
-heading turns by ``v ~ N(0, σ_h²)`` (``root_noise``, ``heading_noise``; the horizontal part and
-the turn accumulate, the height is the pose vector's own each frame; the window, which the
-prior reads, keeps the prior's pose vectors). The move is rigid: every joint is translated by
-``u`` and turned by ``v`` about the vertical through the root, so it needs no second forward
-kinematics. The proposal for ``θ = (u, v)`` is the Laplace approximation of
+paper's) samples the prior and weights by the likelihood; its small innovations cannot follow
+the root's depth, which the observations pin only through the body's apparent size, and a
+cloud that has drifted in depth does not come back. ``"gauss_newton"`` lets the data move the
+body. Its model adds a *root diffusion* to the prior: after the prior's step the root moves by
+``u ~ N(0, σ_r² I₃)`` and the heading turns by ``v ~ N(0, σ_h²)`` (``root_noise``,
+``heading_noise``; the ground-plane part and the turn accumulate, the height stays the pose
+vector's; the window the prior reads keeps the prior's pose vectors). The move is rigid (every
+joint translated by ``u``, turned by ``v`` about the vertical through the root: no second
+forward kinematics). The proposal of ``θ = (u, v)`` is the Laplace approximation of
 ``p(o_t | θ) N(θ; 0, Σ)``: ``gn_steps`` Gauss–Newton (IRLS) steps from ``θ = 0`` on the
-confidence-weighted reprojection error, then a draw from ``N(θ*, H⁻¹)`` (``H`` the
+confidence-weighted reprojection error, then a draw from ``N(θ*, H⁻¹)`` (``H``: the
 Gauss–Newton Hessian at ``θ*``). The weight ``p(o_t | θ) N(θ; 0, Σ) / N(θ; θ*, H⁻¹)`` is the
-exact importance weight of that draw for the diffused model (the pose is drawn from the prior,
-whose density cancels): resampling keeps the filter consistent for the diffused model, and the
-weight approximates the predictive likelihood ``p(o_t | particle at t−1, its pose at t)``,
-exactly so where the projection is linear in ``θ`` and the likelihood Gaussian. The bootstrap
-proposal can run the same diffused model blind (``root_noise > 0``).
+exact importance weight of the draw for the diffused model (the pose comes from the prior,
+whose density cancels), so the filter stays consistent for that model; the weight estimates
+the predictive likelihood ``∫ p(o_t | θ) N(θ; 0, Σ) dθ`` of the particle's prior step, exactly
+where the projection is linear in ``θ`` and the likelihood Gaussian. ``"bootstrap"`` with
+``root_noise > 0`` samples the same diffused model blind.
 
-Likelihoods (:attr:`ParticleFilter.likelihood`): ``"gaussian"`` (above), or ``"student_t"``, a
-bivariate Student-t per joint, ``−(ν + 2)/2 · Σ_k c_k log(1 + ‖r_k‖² / ν)`` with
-``r_k = (π(x_k) − o_k) / s`` and ``ν = dof``, whose weight on a detection 100 px off is small
-(against outliers; IRLS weights ``c_k (ν + 2) / (ν + ‖r_k‖²)`` in the Gauss–Newton steps).
-A joint with confidence 0 counts nowhere, whatever its pixels hold.
+Likelihoods (:attr:`ParticleFilter.likelihood`): ``"gaussian"`` (above) or ``"student_t"``, a
+bivariate Student-t per joint, ``−(ν + 2)/2 · Σ_k c_k log(1 + ‖r_k‖² / ν)``,
+``r_k = (π(x_k) − o_k) / s``, ``ν = dof``, robust to detections far off (IRLS weights
+``c_k (ν + 2) / (ν + ‖r_k‖²)``). A joint of confidence 0 counts nowhere, whatever its pixels.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -91,12 +89,22 @@ __all__ = [
 ]
 
 Dynamics = Literal["implicit", "constant_velocity"]
-_GN_NOISE = 0.03  # default root (m) and heading (rad) diffusion per frame of gauss_newton
+# the options left at None take their proposal's value (design §12.4)
+_DEFAULTS = {
+    "bootstrap": {"likelihood": "gaussian", "likelihood_sigma": 20.0, "root_noise": 0.0,
+                  "heading_noise": 0.0},
+    "gauss_newton": {"likelihood": "student_t", "likelihood_sigma": 10.0, "root_noise": 0.03,
+                     "heading_noise": 0.03},
+}  # fmt: skip
 
 
 class ParticleFilter(Tracker):
     """A particle filter with the implicit model's prior (IP §3, §6): the options of
     :func:`~mtex_jax.tracking.track` for an :class:`~mtex_jax.implicit.ImplicitModel`.
+
+    The options marked *(proposal's default)* take, when left at ``None``, the value of the
+    proposal (bootstrap / Gauss–Newton; :meth:`setting` reads them); the Gauss–Newton values
+    were chosen on training clips (design §12.4).
 
     Attributes:
         n_particles: particles ``N``.
@@ -105,25 +113,23 @@ class ParticleFilter(Tracker):
         noise: innovation of the implicit prior, in database standard deviations ``γ``.
         cv_noise: innovation of the constant-velocity prior, in database standard deviations
             of each parameter's second difference.
-        likelihood_sigma: pixel standard deviation assumed by the likelihood. Wider than the
-            true pixel noise (2 px by default) on purpose: with ``2K`` observed coordinates a
-            likelihood at the true noise leaves one particle with all the weight.
+        likelihood_sigma: pixel scale ``s`` of the likelihood (proposal's default: 20 / 10).
+            Wider than the true pixel noise (2 px by default) on purpose: with ``2K``
+            observed coordinates a likelihood at the true noise leaves one particle with all
+            the weight.
         leaf: leaf rule of the tree search (``"uniform"`` or ``"weighted"``).
         candidates: tree walks per particle and frame (see :meth:`ImplicitModel.sample`;
             1 = the paper's sampler).
         proposal: ``"bootstrap"`` (the paper's: sample the prior, weight by the likelihood)
-            or ``"gauss_newton"`` (the root moved towards the observations, design §12.4;
-            module notes).
-        likelihood: ``"gaussian"`` or ``"student_t"`` (robust; module notes). ``None``: the
-            proposal's default, Gaussian for the bootstrap filter, Student-t for
-            Gauss–Newton.
+            or ``"gauss_newton"`` (the root moved towards the observations; module notes).
+        likelihood: ``"gaussian"`` or ``"student_t"`` (robust; module notes; proposal's
+            default: Gaussian / Student-t).
         dof: degrees of freedom ``ν`` of the Student-t likelihood.
-        gn_steps: Gauss–Newton steps per particle and frame (``"gauss_newton"``).
-        root_noise: ``σ_r``, metres per frame, of the root diffusion (module notes). ``None``:
-            the proposal's default, 0 for the bootstrap filter (the paper's model), 0.03 for
-            Gauss–Newton, which needs it positive.
-        heading_noise: ``σ_h``, radians per frame, of the heading diffusion; ``None``: 0 for
-            the bootstrap filter, 0.03 for Gauss–Newton (0: the root's position only).
+        gn_steps: Gauss–Newton steps per particle and frame.
+        root_noise: ``σ_r``, metres per frame, of the root diffusion (module notes;
+            proposal's default: 0, the paper's model / 0.03; Gauss–Newton needs it > 0).
+        heading_noise: ``σ_h``, radians per frame, of the heading diffusion (proposal's
+            default: 0 / 0.03; 0: the root's position only).
     """
 
     n_particles: int = eqx.field(static=True, default=300)
@@ -131,7 +137,7 @@ class ParticleFilter(Tracker):
     beta: float = eqx.field(static=True, default=0.1)
     noise: float = eqx.field(static=True, default=0.1)
     cv_noise: float = eqx.field(static=True, default=0.1)
-    likelihood_sigma: float = eqx.field(static=True, default=20.0)
+    likelihood_sigma: float | None = eqx.field(static=True, default=None)
     leaf: str = eqx.field(static=True, default="uniform")
     candidates: int = eqx.field(static=True, default=1)
     proposal: str = eqx.field(static=True, default="bootstrap")
@@ -143,22 +149,15 @@ class ParticleFilter(Tracker):
 
     def __check_init__(self) -> None:
         for name, allowed in (
-            ("proposal", ("bootstrap", "gauss_newton")),
+            ("dynamics", ("implicit", "constant_velocity")),
+            ("leaf", ("uniform", "weighted")),
+            ("proposal", tuple(_DEFAULTS)),
             ("likelihood", (None, "gaussian", "student_t")),
         ):
             if getattr(self, name) not in allowed:
                 raise ValueError(
                     f"ParticleFilter: {name} must be one of {allowed}, got {getattr(self, name)!r}"
                 )
-        if self.dynamics not in ("implicit", "constant_velocity"):
-            raise ValueError(
-                f"ParticleFilter: dynamics must be 'implicit' or 'constant_velocity', "
-                f"got {self.dynamics!r}"
-            )
-        if self.leaf not in ("uniform", "weighted"):
-            raise ValueError(
-                f"ParticleFilter: leaf must be 'uniform' or 'weighted', got {self.leaf!r}"
-            )
         for name in ("n_particles", "candidates", "gn_steps"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | np.integer):
@@ -166,42 +165,25 @@ class ParticleFilter(Tracker):
             if v < 1:
                 raise ValueError(f"ParticleFilter: {name} must be ≥ 1, got {v}")
         check_count(self.n_particles, "ParticleFilter: n_particles", MAX_PARTICLES)
-        if not (np.isfinite(self.beta) and self.beta > 0):
-            raise ValueError(f"ParticleFilter: beta must be positive and finite, got {self.beta}")
-        for name in ("noise", "cv_noise"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"ParticleFilter: {name} must be finite and ≥ 0, got {v}")
-        ls = self.likelihood_sigma
-        if not (np.isfinite(ls) and ls > 0):
-            raise ValueError(f"ParticleFilter: likelihood_sigma must be positive, got {ls}")
-        if isinstance(self.dof, bool) or not (np.isfinite(self.dof) and self.dof > 0):
-            raise ValueError(f"ParticleFilter: dof must be positive and finite, got {self.dof!r}")
-        for name in ("root_noise", "heading_noise"):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not (np.isfinite(v) and v >= 0)):
-                raise ValueError(f"ParticleFilter: {name} must be finite and ≥ 0, got {v!r}")
-        if self.proposal == "gauss_newton" and self.diffusion[0] <= 0:
-            raise ValueError("ParticleFilter: root_noise must be positive for gauss_newton")
-
-    @property
-    def diffusion(self) -> tuple[float, float]:
-        """``(σ_r, σ_h)``: the root and heading diffusion (module notes), defaults filled in."""
         gn = self.proposal == "gauss_newton"
-        r, h = self.root_noise, self.heading_noise
-        return (
-            float((_GN_NOISE if gn else 0.0) if r is None else r),
-            float((_GN_NOISE if gn else 0.0) if h is None else h),
-        )
+        for name, positive in (
+            *(("beta", True), ("noise", False), ("cv_noise", False), ("dof", True)),
+            *(("likelihood_sigma", True), ("root_noise", gn), ("heading_noise", False)),
+        ):
+            v = self.setting(name)
+            if isinstance(v, bool) or not (np.isfinite(v) and (v > 0 if positive else v >= 0)):
+                bound = "positive" if positive else "≥ 0"
+                why = " for gauss_newton" if name == "root_noise" else ""
+                raise ValueError(
+                    f"ParticleFilter: {name} must be finite and {bound}{why}, got {v!r}"
+                )
 
-    @property
-    def likelihood_kind(self) -> str:
-        """The likelihood, the proposal's default filled in."""
-        if self.likelihood is not None:
-            return self.likelihood
-        return "student_t" if self.proposal == "gauss_newton" else "gaussian"
+    def setting(self, name: str) -> Any:
+        """The option ``name``, the proposal's default if it is ``None``."""
+        v = getattr(self, name)
+        return _DEFAULTS[self.proposal].get(name) if v is None else v
 
-    def run(self, key: PRNGKeyArray, prior: ImplicitModel, problem: TrackingProblem) -> TrackResult:
+    def run(self, key: PRNGKeyArray, prior: Any, problem: TrackingProblem) -> TrackResult:
         """The filter on ``problem`` (module notes)."""
         return run_particle_filter(key, prior, problem, self)
 
@@ -268,7 +250,7 @@ def rigid_move(
 
 
 def robust_loglik(
-    r: Float[Array, "K 2"], conf: Float[Array, " K"], likelihood: str, dof: Array
+    r: Float[Array, "K 2"], conf: Float[Array, " K"], likelihood: str, dof: Array | float
 ) -> tuple[Array, Array]:
     """Log-likelihood (up to a constant) of the normalised residuals ``r`` and the IRLS weight
     of each joint (module notes); joints with confidence 0 count for nothing."""
@@ -404,7 +386,7 @@ def _track_impl(
         pos, head, rot, lp = dec(pose, pos, head)
         x = forward_kinematics_arrays(fm.skeleton, pos, rot, lp)[:, jidx]  # (N, K, 3)
         k_move = jax.random.split(jax.random.fold_in(k_noise, 1), n)
-        th = jnp.zeros((n, q), dt)  # the root's rigid move (module notes)
+        th = None  # the root's rigid move (module notes)
         if proposal == "gauss_newton":
             x, th, loglik = jax.vmap(gn_move, (0, None, None, 0, 0))(k_move, obs, conf, x, pos)
         else:
@@ -416,7 +398,8 @@ def _track_impl(
                 loglik = -0.5 * jnp.sum(conf[None, :, None] * r * r, axis=(1, 2))
             else:
                 loglik = jax.vmap(lambda r: robust_loglik(r, conf, likelihood, dof)[0])(r)
-        pos, head = pos + th[:, :3], (head + th[:, 3] if q > 3 else head)
+        if th is not None:  # the paper's filter (no diffusion) is left exactly as it was
+            pos, head = pos + th[:, :3], (head + th[:, 3] if q > 3 else head)
         w = jax.nn.softmax(loglik)
         mean_x = jnp.einsum("n,nkc->kc", w, x)
         mean_psi = w @ psi
@@ -491,14 +474,14 @@ def run_particle_filter(
         jnp.asarray(pf.beta, dt),
         jnp.asarray(pf.noise, dt),
         jnp.asarray(pf.cv_noise, dt),
-        jnp.asarray(pf.likelihood_sigma, dt),
+        jnp.asarray(pf.setting("likelihood_sigma"), dt),
         pf.leaf,
         int(pf.candidates),
         pf.proposal,
-        pf.likelihood_kind,
+        pf.setting("likelihood"),
         jnp.asarray(pf.dof, dt),
         int(pf.gn_steps),
-        pf.diffusion,
+        (float(pf.setting("root_noise")), float(pf.setting("heading_noise"))),
     )
     mean_x, mean_psi, mean_root, ess = (np.asarray(a)[:T] for a in out)
     errs: tuple[np.ndarray | None, ...] = (None, None, None)
@@ -508,9 +491,9 @@ def run_particle_filter(
     return TrackResult(
         prior=pf.dynamics,
         n_particles=int(pf.n_particles),
-        mean_joints=put(mean_x),
-        mean_pose=put(mean_psi),
-        mean_root=put(mean_root),
+        mean_joints=jax.device_put(mean_x),
+        mean_pose=jax.device_put(mean_psi),
+        mean_root=jax.device_put(mean_root),
         ess=put(ess),
         error=put(errs[0]),
         error_root_relative=put(errs[1]),

@@ -5,7 +5,7 @@ frames, a confidence per joint and frame (``0``: missing), the camera, and, wher
 state before the first frame and the ground truth. :func:`make_problem` builds one from a clip
 the prior has not seen, for either prior (a :class:`~mtex_jax.texture.MotionTexture` or an
 :class:`~mtex_jax.implicit.ImplicitModel`); with ``missing``, ``outliers`` and ``bone_scale``
-it makes the *hard* setting of ``benchmarks/quality/bench_tracking.py``: joints dropped,
+it makes the *hard* setting of the tracking benchmark: joints dropped,
 detections thrown far off, and a body whose bones are not the model's.
 """
 
@@ -23,7 +23,15 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ..core import check_key
 from ..implicit import ImplicitModel
-from ..motion import FeatureMap, Motion, Skeleton, forward_kinematics, ground_axes, quat_twist
+from ..motion import (
+    FeatureMap,
+    Motion,
+    Skeleton,
+    foot_joints,
+    forward_kinematics,
+    ground_axes,
+    quat_twist,
+)
 from ..texture import MotionTexture
 from ._camera import Camera
 
@@ -178,8 +186,9 @@ def make_problem(
         outlier_pixels: ``(low, high)`` range of an outlier's displacement.
         bone_scale: the tracked person's bones: ``(low, high)``, each bone scaled by a factor
             drawn uniformly from the range, or ``(J,)`` factors per joint; ``None``: the
-            skeleton's own bones. The truth and the observations follow the scaled body; the
-            initial window is the same clip's (rotations do not depend on bone lengths).
+            skeleton's own bones. The truth and the observations follow the scaled body, its
+            root lifted so that its feet stand on the same floor; the initial window is the
+            same clip's (rotations do not depend on bone lengths).
 
     Raises:
         ValueError: clip too short, bad arguments, non-finite values.
@@ -231,6 +240,15 @@ def make_problem(
         if clip.local_positions is not None:
             lp = np.asarray(clip.local_positions) * np.asarray(bs)[None, :, None]
             body = dataclasses.replace(body, local_positions=jnp.asarray(lp))
+        # the person stands on the same floor: the root is lifted (or lowered) by the change
+        # of the feet's typical lowest height
+        feet = list(foot_joints(sk))
+        if feet:
+            low = lambda m: np.median(np.asarray(forward_kinematics(m))[:, feet, sk.up_axis].min(1))
+            lift = low(clip) - low(body)
+            rp = np.asarray(body.root_positions).copy()
+            rp[:, sk.up_axis] += lift
+            body = dataclasses.replace(body, root_positions=jnp.asarray(rp))
     world = np.asarray(forward_kinematics(body))
     truth = world[d + 1 :, list(jidx)]
     root = np.asarray(clip.root_positions)

@@ -64,7 +64,7 @@ class TrackResult(eqx.Module):
     motion: Motion | None = None
 
     def __check_init__(self) -> None:
-        T, K = np.shape(self.mean_joints)[:2]
+        T, _K = np.shape(self.mean_joints)[:2]
         if np.shape(self.mean_joints)[2:] != (3,) or np.shape(self.mean_root) != (T, 3):
             raise ValueError("TrackResult: mean_joints (T, K, 3) and mean_root (T, 3) expected")
         for name in ("ess", "error", "error_root_relative", "error_aligned", "labels"):

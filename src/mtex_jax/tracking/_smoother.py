@@ -39,7 +39,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ..core import MAX_GENERATED_FRAMES, bucket_length, check_count
+from ..core import MAX_GENERATED_FRAMES, as_array, bucket_length, check_count
 from ..edit import (
     FrameSegments,
     PointTargets,
@@ -52,6 +52,7 @@ from ..edit import (
 from ..motion import Motion, ground_axes, quat_rotate, yaw_quat
 from ..texture import MotionTexture
 from ._body import Body
+from ._floor import FloorContact
 from ._priors import MotionPrior, SmoothPrior, TexturePrior, root_weights
 from ._problem import TrackingProblem
 from ._reprojection import PixelLoss, Reprojection, StudentT
@@ -59,7 +60,7 @@ from ._result import TrackResult, joint_errors
 from ._start import rigid_start
 from ._tracker import Tracker
 
-__all__ = ["MapSmoother", "TRACK_FRAMES"]
+__all__ = ["TRACK_FRAMES", "MapSmoother"]
 
 #: the shape-bucket step of a smoother's clip (design §11): a 150-frame clip is solved as 192
 #: frames, not as the 1,024 of the package's default bucket (a step costs time in proportion)
@@ -92,6 +93,11 @@ class MapSmoother(Tracker):
         floor: ``"known"``: the world's floor is the skeleton's (a camera with extrinsics);
             ``"estimate"``: a camera without extrinsics, the floor height is estimated.
         n_headings: headings tried per frame by the rigid start.
+        floor_contact: price the lowest foot's distance from the floor (:mod:`._floor`; only
+            where the texture has a contact model).
+        anneal_from: batch: the first round's pixel scale (pixels); each round halves it down
+            to ``pixel_sigma`` (a continuation that keeps Gauss–Newton out of the narrow
+            valleys of a precise reprojection).
     """
 
     lag: int | None = eqx.field(static=True, default=None)
@@ -108,6 +114,8 @@ class MapSmoother(Tracker):
     floor: str = eqx.field(static=True, default="known")
     n_headings: int = eqx.field(static=True, default=16)
     lag_steps: int = eqx.field(static=True, default=6)
+    anneal_from: float = eqx.field(static=True, default=8.0)
+    floor_contact: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self) -> None:
         for name in ("rounds", "max_steps", "lag_steps", "n_headings"):
@@ -118,7 +126,7 @@ class MapSmoother(Tracker):
             isinstance(self.lag, bool) or not isinstance(self.lag, int | np.integer) or self.lag < 1
         ):
             raise ValueError(f"MapSmoother: lag must be None or an integer ≥ 1, got {self.lag!r}")
-        for name in ("root_accel", "turn_accel", "scale_sd", "bone_sd"):
+        for name in ("root_accel", "turn_accel", "scale_sd", "bone_sd", "anneal_from"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (np.isfinite(v) and v > 0):
                 raise ValueError(f"MapSmoother: {name} must be positive and finite, got {v!r}")
@@ -151,7 +159,18 @@ class _Frame(eqx.Module):
     root_w: Float[Array, " D"]
     bone_scale: Float[Array, " J"]
     floor: Float[Array, ""]
+    contact: FloorContact | None
     fps: float = eqx.field(static=True)
+
+    def terms(self, valid: Array) -> tuple[Any, ...]:
+        """The residual terms: the reprojection and, where the texture knows its floor, the
+        feet on it (at frames where ``valid``)."""
+        if self.contact is None:
+            return (self.reproj,)
+        c = eqx.tree_at(
+            lambda c: (c.height, c.valid), self.contact, (self.contact.height + self.floor, valid)
+        )
+        return (self.reproj, c)
 
 
 def _solve(
@@ -197,7 +216,7 @@ def _solve(
         rtol=1e-7,
         xtol=1e-6,
         colouring=channel_colouring(body.feature_map, body.order),
-        terms=(fr.reproj,),
+        terms=fr.terms((~held & (jnp.arange(T) < n_valid)).astype(dt)),
         linear=grad,
     )
     return X0 + sol.z, sol.cost
@@ -220,42 +239,78 @@ def _best_texton(tx: WhitenedTextons, Y: Array, n_valid: Array) -> Array:
     return jnp.argmin(jax.vmap(nll)(jnp.arange(N, dtype=jnp.int32)))
 
 
+_best_texton_jit = eqx.filter_jit(_best_texton)
+
+
 def _single(i: int, T: int) -> FrameSegments:
     lab = jnp.full((T,), i, jnp.int32)
     return FrameSegments(lab, lab, jnp.arange(T, dtype=jnp.int32) + 2)
 
 
 # --------------------------------------------------------------------------- bones
-def _bone_step(fr: _Frame, X: Array, n_valid: Array, sd: Array, estimate_floor: bool) -> _Frame:
+def _bone_step(
+    fr: _Frame, X: Array, movable: Array, sd: Array, estimate_floor: bool
+) -> tuple[_Frame, Array]:
     """Gauss–Newton (optimistix's Levenberg–Marquardt) on the bones' log-scales (and the floor)
-    with the poses fixed, the reprojection reweighted at the current estimate."""
-    body, rep = fr.body, fr.reproj
+    with the poses fixed, the residual terms reweighted at the current estimate.
+
+    A change of the body's overall size moves every ``movable`` frame's root along its camera
+    ray by the same factor (about the camera's centre), so the step follows the valley in
+    which one camera cannot tell a bigger body from a farther one; the floor term and the
+    priors decide where in it the body is. Returns the frame inputs and the moved ``X``."""
+    body = fr.body
     dt = X.dtype
     J = fr.bone_scale.shape[0]
-    ok = (jnp.arange(X.shape[0]) < n_valid).astype(dt)
-    r0 = rep.residual(body.positions(X, fr.bone_scale, fr.floor))
-    sw = jnp.sqrt(rep.weights(r0)) * jnp.repeat(ok[:, None], 1, axis=1)
+    fm = body.feature_map
+    up, h0, h1 = ground_axes(fm.skeleton.up_axis)
+    c0, c1, _ = body.root_cols
+    act = np.asarray(fm.active, dtype=np.int64)
+    sc_h = jnp.asarray(fm.scale, dt)[act[2]]
+    off_h = jnp.asarray(fm.offset, dt)[act[2]]
+    cam = fr.reproj.camera
+    centre = -cam.rotation.astype(dt).T @ cam.translation.astype(dt)
+    used = np.asarray(body.order)
+    log_b0 = jnp.log(fr.bone_scale)
+    size0 = jnp.mean(log_b0[used])
+    mv = movable.astype(dt)
+    terms = fr.terms(mv)
+    P0 = body.positions(X, fr.bone_scale, fr.floor)
+    sws = [jnp.sqrt(t.weights(t.residual(P0))) for t in terms]
     scale_sd, bone_sd = sd[0], sd[1]
 
-    def residuals(theta: Array, _args: Any) -> Array:
-        log_s, c, fl = theta[0], theta[1 : 1 + J], theta[1 + J]
-        b = jnp.exp(log_s + c)
-        r = rep.residual(body.positions(X, b, fl if estimate_floor else fr.floor))
-        return jnp.concatenate([(r * sw).reshape(-1), (log_s / scale_sd)[None], c / bone_sd])
+    def moved(theta: Array) -> tuple[Array, Array, Array]:
+        g, c, fl = theta[0], theta[1 : 1 + J], theta[1 + J]
+        log_b = g + c
+        f = fl if estimate_floor else fr.floor
+        k = jnp.exp(jnp.mean(log_b[used]) - size0)
+        k = 1.0 + (k - 1.0) * mv  # (T,): held frames stay
+        u = X[:, 2] * sc_h + off_h + fr.floor
+        Xm = X.at[:, c0].set(centre[h0] + k * (X[:, c0] - centre[h0]))
+        Xm = Xm.at[:, c1].set(centre[h1] + k * (X[:, c1] - centre[h1]))
+        u_new = centre[up] + k * (u - centre[up])
+        Xm = Xm.at[:, 2].set((u_new - f - off_h) / sc_h)
+        return Xm, jnp.exp(log_b), f
 
-    log_b = jnp.log(fr.bone_scale)
-    theta0 = jnp.concatenate([jnp.zeros((1,), dt), log_b, fr.floor[None]])
+    def residuals(theta: Array, _args: Any) -> Array:
+        Xm, b, f = moved(theta)
+        P = body.positions(Xm, b, f)
+        parts = [(t.residual(P) * w).reshape(-1) for t, w in zip(terms, sws, strict=True)]
+        if len(terms) > 1 and fr.contact is not None:  # its height moves with the floor
+            c2 = eqx.tree_at(lambda c: c.height, terms[1], fr.contact.height + f)
+            parts[1] = (c2.residual(P) * sws[1]).reshape(-1)
+        g, c = theta[0], theta[1 : 1 + J]
+        return jnp.concatenate([*parts, (g / scale_sd)[None], c / bone_sd])
+
+    theta0 = jnp.concatenate([jnp.zeros((1,), dt), log_b0, fr.floor[None]])
     sol = optx.least_squares(
         residuals,
         optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8),
         theta0,
-        max_steps=30,
+        max_steps=40,
         throw=False,
     )
-    th = sol.value
-    new_b = jnp.exp(th[0] + th[1 : 1 + J])
-    new_f = th[1 + J] if estimate_floor else fr.floor
-    return eqx.tree_at(lambda f: (f.bone_scale, f.floor), fr, (new_b, new_f))
+    Xm, b, f = moved(sol.value)
+    return eqx.tree_at(lambda q: (q.bone_scale, q.floor), fr, (b, f)), Xm
 
 
 _bone_step_jit = eqx.filter_jit(_bone_step)
@@ -297,11 +352,11 @@ def _segmentation(
     padding continues the last segment); a clip the texture cannot segment takes its best
     single texton."""
     try:
-        rows = texture.segment(jnp.asarray(Y[:n])).to_list()
+        rows = texture.segment(np.asarray(Y[:n])).to_list()
     except ValueError:
         rows = []
     if not rows or sum(r[1] for r in rows) != n:
-        i = int(_best_texton(tx, jnp.asarray(Y), jnp.asarray(n)))
+        i = int(_best_texton_jit(tx, as_array(Y), as_array(np.asarray(n, np.int32))))
         return _single(i, T_pad)
     lengths = [r[1] for r in rows]
     lengths[-1] += T_pad - n
@@ -327,17 +382,21 @@ def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackR
     obs = np.asarray(problem.observations, dtype=np.float64)
     conf = np.asarray(problem.confidence, dtype=np.float64)
     known_floor = opts.floor == "known"
+    # the rigid start on the clip padded to its bucket (confidence 0), so that a new length
+    # in the same bucket compiles nothing (design §12.5)
+    T_b = bucket_length(T, TRACK_FRAMES)
     X_start, floor = rigid_start(
         body,
         problem.camera,
-        jnp.asarray(obs, dt),
-        jnp.asarray(conf, dt),
+        as_array(_pad_rows(obs, T_b).astype(dt)),
+        as_array(np.concatenate([conf, np.zeros((T_b - T, conf.shape[1]))]).astype(dt)),
         sigma,
         opts.pixel_loss,
         fps=fps,
         n_headings=opts.n_headings,
         floor_known=known_floor,
     )
+    X_start = X_start[:T]
     n_init = 0
     prev = None
     if problem.has_init:
@@ -347,44 +406,15 @@ def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackR
         prev = (jnp.asarray(p0, dt), jnp.asarray(psi0, dt))
     root_w = jnp.asarray(root_weights(D, body.root_cols, fps, opts.root_accel, opts.turn_accel), dt)
     J = fm.skeleton.n_joints
-    if opts.lag is None:
-        X, fr, labels = _batch(
-            opts,
-            texture,
-            body,
-            tx,
-            problem,
-            X_start,
-            n_init,
-            prev,
-            obs,
-            conf,
-            sigma,
-            root_w,
-            floor,
-            dt,
-        )
-    else:
-        X, fr, labels = _fixed_lag(
-            opts,
-            texture,
-            body,
-            tx,
-            problem,
-            X_start,
-            n_init,
-            prev,
-            obs,
-            conf,
-            sigma,
-            root_w,
-            floor,
-            dt,
-        )
+    run = _batch if opts.lag is None else _fixed_lag
+    args = (texture, body, tx, problem, X_start, n_init, prev, obs, conf, sigma, root_w, floor, dt)
+    X, fr, labels = run(opts, *args)
     X = np.asarray(X)
-    Xt = jnp.asarray(X[n_init:], dt)
-    P = np.asarray(body.observed(Xt, fr.bone_scale, fr.floor))
-    Y = np.asarray(body.observations(jnp.asarray(X, dt), *(prev or (None, None))))[n_init:]
+    n_all = X.shape[0]
+    Xb = as_array(_pad_rows(X, bucket_length(n_all, TRACK_FRAMES)).astype(dt))
+    P, Y = (
+        np.asarray(a)[n_init:n_all] for a in _outputs_jit(body, Xb, fr.bone_scale, fr.floor, prev)
+    )
     up, h0, h1 = ground_axes(fm.skeleton.up_axis)
     c0, c1, cy = body.root_cols
     root = np.zeros((T, 3))
@@ -392,32 +422,65 @@ def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackR
     act = np.asarray(fm.active)
     root[:, up] = Y[:, 2] * np.asarray(fm.scale)[act[2]] + np.asarray(fm.offset)[act[2]]
     root[:, up] += float(fr.floor)
-    motion = fm.decode(jnp.asarray(Y, dt), jnp.asarray(root[0], dt), jnp.asarray(X[n_init, cy], dt))
+    motion = fm.decode(as_array(Y.astype(dt)), as_array(root[0].astype(dt)), float(X[n_init, cy]))
     motion = Motion(
-        motion.skeleton, motion.fps, jnp.asarray(root, dt), motion.rotations, motion.local_positions
+        motion.skeleton,
+        motion.fps,
+        as_array(root.astype(dt)),
+        motion.rotations,
+        motion.local_positions,
     )
     errs: tuple[Any, ...] = (None, None, None)
     if problem.truth is not None:
         errs = joint_errors(P, np.asarray(problem.truth))
     bones = np.asarray(fr.bone_scale) if opts.bones else None
-    put = lambda a: None if a is None else jax.device_put(jnp.asarray(a, dt))
+    put = lambda a: None if a is None else as_array(np.asarray(a).astype(dt))
     del J
     return TrackResult(
         prior="texture" if isinstance(opts.prior, TexturePrior) else "smooth",
         n_particles=0,
-        mean_joints=put(P),
-        mean_pose=put(Y),
-        mean_root=put(root),
+        mean_joints=as_array(P.astype(dt)),
+        mean_pose=as_array(Y.astype(dt)),
+        mean_root=as_array(root.astype(dt)),
         error=put(errs[0]),
         error_root_relative=put(errs[1]),
         error_aligned=put(errs[2]),
-        labels=None if labels is None else jax.device_put(jnp.asarray(labels, jnp.int32)),
+        labels=None if labels is None else as_array(np.asarray(labels, np.int32)),
         bone_scale=None if bones is None else put(bones),
         motion=motion,
     )
 
 
-def _frame_inputs(body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps):
+def _floor_term(texture: MotionTexture, body: Body, T_pad: int, dt) -> FloorContact | None:
+    """The feet-on-the-floor term, where the texture has a contact model whose feet are in the
+    solve's kept joints."""
+    cm = texture.contacts
+    if cm is None:
+        return None
+    feet = [body.order.index(f) for f in cm.feet if f in body.order]
+    if not feet:
+        return None
+    return FloorContact(
+        slots=tuple(feet),
+        up=body.feature_map.skeleton.up_axis,
+        height=jnp.asarray(cm.floor, dt),
+        valid=jnp.zeros((T_pad,), dt),
+    )
+
+
+def _outputs(
+    body: Body, X: Array, bone_scale: Array, floor: Array, prev: Any
+) -> tuple[Array, Array]:
+    """The observed joints and the observation vectors of an estimate (one bucket's shape)."""
+    return body.observed(X, bone_scale, floor), body.observations(X, *(prev or (None, None)))
+
+
+_outputs_jit = eqx.filter_jit(_outputs)
+
+
+def _frame_inputs(
+    body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps, contact=None
+):
     """The solve's inputs of a clip padded to ``T_pad`` frames (confidence 0 in the padding and
     in the held initial frames)."""
     T = obs.shape[0]
@@ -439,6 +502,7 @@ def _frame_inputs(body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init
         root_w=root_w,
         bone_scale=jnp.ones((body.feature_map.skeleton.n_joints,), dt),
         floor=jnp.asarray(floor, dt),
+        contact=contact,
         fps=fps,
     )
 
@@ -455,39 +519,51 @@ def _batch(
     n = X_start.shape[0]
     T_pad = bucket_length(n, TRACK_FRAMES)
     fps = float(body.feature_map.fps)
-    fr = _frame_inputs(body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps)
+    contact = _floor_term(texture, body, T_pad, dt) if opts.floor_contact else None
+    fr = _frame_inputs(
+        body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps, contact
+    )
     fr = eqx.tree_at(lambda f: f.reproj.pixel_loss, fr, opts.pixel_loss)
-    X = jnp.asarray(_pad_rows(X_start, T_pad), dt)
-    held = jnp.asarray(np.arange(T_pad) < n_init) | jnp.asarray(np.arange(T_pad) >= n)
-    nv = jnp.asarray(n)
+    X = as_array(_pad_rows(X_start, T_pad).astype(dt))
+    held = as_array((np.arange(T_pad) < n_init) | (np.arange(T_pad) >= n))
+    nv = as_array(np.asarray(n, np.int32))
+    movable = ~held
     sd = jnp.asarray([opts.scale_sd, opts.bone_sd], dt)
     est_floor = opts.floor == "estimate"
-    smooth = SmoothPrior()
     seg0 = _single(0, T_pad)
-    first = smooth if isinstance(opts.prior, TexturePrior) else opts.prior
-    X, _ = _solve_jit(fr, first, seg0, X, held, prev, nv, opts.max_steps)
-    if opts.bones or est_floor:
-        fr = _bone_step_jit(fr, X, nv, sd, est_floor) if opts.bones else _floor_only(fr, X, nv)
+    textured = isinstance(opts.prior, TexturePrior) or opts.prior.segmented
     labels = None
-    if isinstance(opts.prior, TexturePrior) or opts.prior.segmented:
-        for _ in range(opts.rounds):
-            Y = np.asarray(body.observations(X, *(prev or (None, None))))
+    for r, s_r in enumerate(_sigmas(sigma, opts.anneal_from, 1 + opts.rounds)):
+        fr = eqx.tree_at(lambda f: f.reproj.sigma, fr, jnp.asarray(s_r, dt))
+        if r == 0 or not textured:
+            # the first round: a smoothness prior (the texture's needs a segmentation)
+            first = SmoothPrior() if isinstance(opts.prior, TexturePrior) else opts.prior
+            X, _ = _solve_jit(fr, first, seg0, X, held, prev, nv, opts.max_steps)
+        else:
+            Y = np.asarray(_outputs_jit(body, X, fr.bone_scale, fr.floor, prev)[1])
             seg = _segmentation(texture, tx, Y, T_pad, n)
             X, _ = _solve_jit(fr, opts.prior, seg, X, held, prev, nv, opts.max_steps)
-            if opts.bones or est_floor:
-                fr = (
-                    _bone_step_jit(fr, X, nv, sd, est_floor)
-                    if opts.bones
-                    else _floor_only(fr, X, nv)
-                )
             labels = np.asarray(seg.labels)[n_init:n]
+        if opts.bones:
+            fr, X = _bone_step_jit(fr, X, movable, sd, est_floor)
+        elif est_floor:
+            fr, X = _floor_only(fr, X, movable)
     return np.asarray(X)[:n], fr, labels
 
 
-def _floor_only(fr: _Frame, X: Array, n_valid: Array) -> _Frame:
+def _sigmas(sigma: float, start: float, at_least: int) -> list[float]:
+    """The pixel scales of the rounds: halved from ``max(start, σ)`` down to ``σ`` (a
+    continuation: early rounds see a smoother cost), then ``σ`` until ``at_least`` rounds."""
+    out = [max(float(start), sigma)]
+    while out[-1] > sigma:
+        out.append(max(out[-1] / 2.0, sigma))
+    return out + [sigma] * max(0, at_least - len(out))
+
+
+def _floor_only(fr: _Frame, X: Array, movable: Array) -> tuple[_Frame, Array]:
     """The floor alone re-estimated (bones fixed): the bone step with the bones' priors tight."""
     sd = jnp.asarray([1e-6, 1e-6], X.dtype)
-    return _bone_step_jit(fr, X, n_valid, sd, True)
+    return _bone_step_jit(fr, X, movable, sd, True)
 
 
 def _lag_run(
@@ -506,7 +582,7 @@ def _lag_run(
     dt = X_all.dtype
     body = fr.body
     c0, c1, cy = body.root_cols
-    up, h0, h1 = ground_axes(body.feature_map.skeleton.up_axis)
+    _up, h0, h1 = ground_axes(body.feature_map.skeleton.up_axis)
     held = jnp.arange(W) < 2
     root = jnp.zeros(X_all.shape[1], dt).at[jnp.array([c0, c1, cy])].set(1.0)
     prior = TexturePrior()
@@ -571,7 +647,11 @@ def _fixed_lag(
     if t0 >= n:
         return X0, fr_first, None
     T_pad = bucket_length(n, TRACK_FRAMES)
-    fr = _frame_inputs(body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps)
+    W = L + 3
+    contact = _floor_term(texture, body, W, dt) if opts.floor_contact else None
+    fr = _frame_inputs(
+        body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps, contact
+    )
     fr = eqx.tree_at(lambda f: f.reproj.pixel_loss, fr, opts.pixel_loss)
     if fr_first is not None:
         fr = eqx.tree_at(lambda f: f.bone_scale, fr, fr_first.bone_scale)

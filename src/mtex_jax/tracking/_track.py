@@ -12,6 +12,7 @@ from ..texture import MotionTexture
 from ._particle import ParticleFilter
 from ._problem import TrackingProblem
 from ._result import TrackResult
+from ._smoother import MapSmoother
 from ._tracker import Tracker, check_problem
 
 __all__ = ["track"]
@@ -53,8 +54,6 @@ def track(
         if isinstance(prior, ImplicitModel):
             method = ParticleFilter(**options)
         elif isinstance(prior, MotionTexture):
-            from ._smoother import MapSmoother
-
             method = MapSmoother(**options)
         else:
             raise TypeError(
