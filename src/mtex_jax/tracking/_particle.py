@@ -261,6 +261,28 @@ def robust_loglik(
     return -0.5 * (dof + 2) * jnp.sum(conf * jnp.log1p(r2 / dof)), conf * (dof + 2) / (dof + r2)
 
 
+def _cholesky(h: Array) -> list[list[Array]]:
+    """Lower Cholesky factor of a small SPD matrix, unrolled (entries ``l[i][j]``, ``j ≤ i``):
+    elementwise work that vectorises over particles, unlike a batched LAPACK call."""
+    q = h.shape[0]
+    l = [[h[0, 0]] * q for _ in range(q)]
+    for j in range(q):
+        l[j][j] = jnp.sqrt(h[j, j] - sum(l[j][k] ** 2 for k in range(j)))
+        for i in range(j + 1, q):
+            l[i][j] = (h[i, j] - sum(l[i][k] * l[j][k] for k in range(j))) / l[j][j]
+    return l
+
+
+def _lower_solve(l: list[list[Array]], b: Array, transpose: bool = False) -> Array:
+    """``L⁻¹ b`` (or ``L⁻ᵀ b``) by substitution with the factor of :func:`_cholesky`."""
+    q = len(l)
+    x: list[Array] = [b[0]] * q
+    for i in range(q - 1, -1, -1) if transpose else range(q):
+        ks = range(i + 1, q) if transpose else range(i)
+        x[i] = (b[i] - sum((l[k][i] if transpose else l[i][k]) * x[k] for k in ks)) / l[i][i]
+    return jnp.stack(x)
+
+
 def gauss_newton_root(
     camera: Camera,
     obs: Float[Array, "K 2"],
@@ -307,11 +329,11 @@ def gauss_newton_root(
         h = jnp.einsum("k,kai,kaj->ij", w, jac, jac) + jnp.diag(precision)
         return h, jnp.einsum("k,kai,ka->i", w, jac, r) + precision * th
 
-    def step(th, _):
-        h, g = normal_eqs(th)
-        return th - jnp.linalg.solve(h, g), None
-
-    theta, _ = lax.scan(step, jnp.zeros_like(precision), None, length=steps)
+    theta = jnp.zeros_like(precision)
+    for _ in range(steps):  # unrolled: a few steps, fused into the caller's loop body
+        h, g = normal_eqs(theta)
+        l = _cholesky(h)
+        theta = theta - _lower_solve(l, _lower_solve(l, g), transpose=True)
     return theta, normal_eqs(theta)[0]
 
 
@@ -360,10 +382,10 @@ def _track_impl(
             problem.camera, obs, conf, x, root, prec, likelihood_sigma, up, gn_steps,
             likelihood, dof,
         )  # fmt: skip
-        chol = jnp.linalg.cholesky(h)
+        chol = _cholesky(h)
         e = jax.random.normal(key, m.shape, dt)
-        th = m + jax.scipy.linalg.solve_triangular(chol.T, e, lower=False)  # ~ N(m, H⁻¹)
-        log_q = -0.5 * e @ e + jnp.sum(jnp.log(jnp.diag(chol)))
+        th = m + _lower_solve(chol, e, transpose=True)  # ~ N(m, H⁻¹)
+        log_q = -0.5 * e @ e + sum(jnp.log(chol[i][i]) for i in range(len(chol)))
         xs = rigid_move(x, root, th, up)
         r = (problem.camera.project(xs) - obs) / likelihood_sigma
         ll = robust_loglik(r, conf, likelihood, dof)[0]
