@@ -326,8 +326,9 @@ def gauss_newton_root(
     def normal_eqs(th):
         r, jac = resid(th), jax.jacfwd(resid)(th)  # (K, 2), (K, 2, q)
         w = robust_loglik(r, conf, likelihood, dof)[1]
-        h = jnp.einsum("k,kai,kaj->ij", w, jac, jac) + jnp.diag(precision)
-        return h, jnp.einsum("k,kai,ka->i", w, jac, r) + precision * th
+        wj = w[:, None, None] * jac  # products and sums, not dots: fused under vmap
+        h = jnp.sum(wj[..., :, None] * jac[..., None, :], axis=(0, 1)) + jnp.diag(precision)
+        return h, jnp.sum(wj * r[..., None], axis=(0, 1)) + precision * th
 
     theta = jnp.zeros_like(precision)
     for _ in range(steps):  # unrolled: a few steps, fused into the caller's loop body
