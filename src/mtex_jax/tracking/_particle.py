@@ -265,21 +265,21 @@ def _cholesky(h: Array) -> list[list[Array]]:
     """Lower Cholesky factor of a small SPD matrix, unrolled (entries ``l[i][j]``, ``j ≤ i``):
     elementwise work that vectorises over particles, unlike a batched LAPACK call."""
     q = h.shape[0]
-    l = [[h[0, 0]] * q for _ in range(q)]
+    lo = [[h[0, 0]] * q for _ in range(q)]
     for j in range(q):
-        l[j][j] = jnp.sqrt(h[j, j] - sum(l[j][k] ** 2 for k in range(j)))
+        lo[j][j] = jnp.sqrt(h[j, j] - sum(lo[j][k] ** 2 for k in range(j)))
         for i in range(j + 1, q):
-            l[i][j] = (h[i, j] - sum(l[i][k] * l[j][k] for k in range(j))) / l[j][j]
-    return l
+            lo[i][j] = (h[i, j] - sum(lo[i][k] * lo[j][k] for k in range(j))) / lo[j][j]
+    return lo
 
 
-def _lower_solve(l: list[list[Array]], b: Array, transpose: bool = False) -> Array:
+def _lower_solve(lo: list[list[Array]], b: Array, transpose: bool = False) -> Array:
     """``L⁻¹ b`` (or ``L⁻ᵀ b``) by substitution with the factor of :func:`_cholesky`."""
-    q = len(l)
+    q = len(lo)
     x: list[Array] = [b[0]] * q
     for i in range(q - 1, -1, -1) if transpose else range(q):
         ks = range(i + 1, q) if transpose else range(i)
-        x[i] = (b[i] - sum((l[k][i] if transpose else l[i][k]) * x[k] for k in ks)) / l[i][i]
+        x[i] = (b[i] - sum((lo[k][i] if transpose else lo[i][k]) * x[k] for k in ks)) / lo[i][i]
     return jnp.stack(x)
 
 
@@ -320,11 +320,22 @@ def gauss_newton_root(
     obs = jnp.where(on, obs, 0.0)
     dof = jnp.asarray(dof, obs.dtype)
 
-    def resid(th):
-        return jnp.where(on, (camera.project(rigid_move(x, root, th, up)) - obs) / sigma, 0.0)
+    rot = camera.rotation.astype(x.dtype)
 
     def normal_eqs(th):
-        r, jac = resid(th), jax.jacfwd(resid)(th)  # (K, 2), (K, 2, q)
+        # residuals and their Jacobian in closed form, as elementwise products (no dots)
+        arm = rigid_move(x, root, th.at[:3].set(0.0), up) - root  # (K, 3), turned
+        xc = jnp.sum(rot * (root + arm + th[:3])[:, None, :], axis=-1) + camera.translation
+        z = xc[:, 2:]
+        px = camera.focal * xc[:, :2] / z + camera.center
+        r = jnp.where(on, (px - obs) / sigma, 0.0)  # (K, 2)
+        eye = jnp.broadcast_to(jnp.eye(3, dtype=x.dtype), (x.shape[0], 3, 3))
+        dx = jnp.concatenate([eye, jnp.cross(up, arm)[..., None]], axis=-1)[..., : th.shape[0]]
+        dxc = jnp.sum(rot[None, :, :, None] * dx[:, None], axis=2)  # (K, 3, q)
+        jac = (camera.focal / z[..., None]) * (
+            dxc[:, :2] - xc[:, :2, None] / z[..., None] * dxc[:, 2:]
+        )
+        jac = jnp.where(on[..., None], jac / sigma, 0.0)  # (K, 2, q)
         w = robust_loglik(r, conf, likelihood, dof)[1]
         wj = w[:, None, None] * jac  # products and sums, not dots: fused under vmap
         h = jnp.sum(wj[..., :, None] * jac[..., None, :], axis=(0, 1)) + jnp.diag(precision)
@@ -333,8 +344,8 @@ def gauss_newton_root(
     theta = jnp.zeros_like(precision)
     for _ in range(steps):  # unrolled: a few steps, fused into the caller's loop body
         h, g = normal_eqs(theta)
-        l = _cholesky(h)
-        theta = theta - _lower_solve(l, _lower_solve(l, g), transpose=True)
+        lo = _cholesky(h)
+        theta = theta - _lower_solve(lo, _lower_solve(lo, g), transpose=True)
     return theta, normal_eqs(theta)[0]
 
 
