@@ -32,22 +32,22 @@ cloud that has drifted in depth does not come back. ``"gauss_newton"`` lets the 
 body. Its model adds a *root diffusion* to the prior: after the prior's step the root moves by
 ``u ~ N(0, σ_r² I₃)`` and the heading turns by ``v ~ N(0, σ_h²)`` (``root_noise``,
 ``heading_noise``; the ground-plane part and the turn accumulate, the height stays the pose
-vector's; the window the prior reads keeps the prior's pose vectors). The move is rigid (every
-joint translated by ``u``, turned by ``v`` about the vertical through the root: no second
-forward kinematics). The proposal of ``θ = (u, v)`` is the Laplace approximation of
-``p(o_t | θ) N(θ; 0, Σ)``: ``gn_steps`` Gauss–Newton (IRLS) steps from ``θ = 0`` on the
-confidence-weighted reprojection error, then a draw from ``N(θ*, H⁻¹)`` (``H``: the
-Gauss–Newton Hessian at ``θ*``). The weight ``p(o_t | θ) N(θ; 0, Σ) / N(θ; θ*, H⁻¹)`` is the
-exact importance weight of the draw for the diffused model (the pose comes from the prior,
-whose density cancels), so the filter stays consistent for that model; the weight estimates
-the predictive likelihood ``∫ p(o_t | θ) N(θ; 0, Σ) dθ`` of the particle's prior step, exactly
-where the projection is linear in ``θ`` and the likelihood Gaussian. ``"bootstrap"`` with
-``root_noise > 0`` samples the same diffused model blind.
+vector's, the window the prior reads keeps the prior's pose vectors), a rigid move (every joint
+translated by ``u``, turned by ``v`` about the vertical through the root). The proposal of
+``θ = (u, v)`` is the Laplace approximation of ``p(o_t | θ) N(θ; 0, Σ)``: ``gn_steps``
+Gauss–Newton (IRLS) steps from ``θ = 0`` on the confidence-weighted reprojection error, then a
+draw from ``N(θ*, H⁻¹)`` (``H``: the Gauss–Newton Hessian at ``θ*``). The weight
+``p(o_t | θ) N(θ; 0, Σ) / N(θ; θ*, H⁻¹)`` is the exact importance weight of the draw for the
+diffused model (the pose comes from the prior, whose density cancels): the filter stays
+consistent for that model, and the weight estimates the predictive likelihood
+``∫ p(o_t | θ) N(θ; 0, Σ) dθ`` of the particle's prior step (exactly, were the projection
+linear in ``θ`` and the likelihood Gaussian). ``"bootstrap"`` with ``root_noise > 0`` samples
+the same diffused model blind.
 
-Likelihoods (:attr:`ParticleFilter.likelihood`): ``"gaussian"`` (above) or ``"student_t"``, a
-bivariate Student-t per joint, ``−(ν + 2)/2 · Σ_k c_k log(1 + ‖r_k‖² / ν)``,
-``r_k = (π(x_k) − o_k) / s``, ``ν = dof``, robust to detections far off (IRLS weights
-``c_k (ν + 2) / (ν + ‖r_k‖²)``). A joint of confidence 0 counts nowhere, whatever its pixels.
+Likelihoods (:attr:`ParticleFilter.likelihood`): ``"gaussian"`` (above) or ``"student_t"``,
+``−(ν + 2)/2 · Σ_k c_k log(1 + ‖r_k‖² / ν)`` with ``r_k = (π(x_k) − o_k) / s``, ``ν = dof``
+(robust to detections far off; IRLS weights ``c_k (ν + 2) / (ν + ‖r_k‖²)``). A joint of
+confidence 0 counts nowhere, whatever its pixels.
 """
 
 from __future__ import annotations
@@ -89,22 +89,19 @@ __all__ = [
 ]
 
 Dynamics = Literal["implicit", "constant_velocity"]
-# the options left at None take their proposal's value (design §12.4)
-_DEFAULTS = {
-    "bootstrap": {"likelihood": "gaussian", "likelihood_sigma": 20.0, "root_noise": 0.0,
-                  "heading_noise": 0.0},
-    "gauss_newton": {"likelihood": "student_t", "likelihood_sigma": 10.0, "root_noise": 0.03,
-                     "heading_noise": 0.03},
-}  # fmt: skip
+_OPTIONS = ("likelihood", "likelihood_sigma", "root_noise", "heading_noise")
+_DEFAULTS = {  # the options left at None take their proposal's value (design §12.4)
+    "bootstrap": dict(zip(_OPTIONS, ("gaussian", 20.0, 0.0, 0.0), strict=True)),
+    "gauss_newton": dict(zip(_OPTIONS, ("student_t", 10.0, 0.03, 0.03), strict=True)),
+}
 
 
 class ParticleFilter(Tracker):
     """A particle filter with the implicit model's prior (IP §3, §6): the options of
     :func:`~mtex_jax.tracking.track` for an :class:`~mtex_jax.implicit.ImplicitModel`.
 
-    The options marked *(proposal's default)* take, when left at ``None``, the value of the
-    proposal (bootstrap / Gauss–Newton; :meth:`setting` reads them); the Gauss–Newton values
-    were chosen on training clips (design §12.4).
+    Options left at ``None`` take their proposal's default (bootstrap / Gauss–Newton, read by
+    :meth:`setting`; the latter's chosen on training clips, design §12.4).
 
     Attributes:
         n_particles: particles ``N``.
@@ -113,23 +110,23 @@ class ParticleFilter(Tracker):
         noise: innovation of the implicit prior, in database standard deviations ``γ``.
         cv_noise: innovation of the constant-velocity prior, in database standard deviations
             of each parameter's second difference.
-        likelihood_sigma: pixel scale ``s`` of the likelihood (proposal's default: 20 / 10).
-            Wider than the true pixel noise (2 px by default) on purpose: with ``2K``
-            observed coordinates a likelihood at the true noise leaves one particle with all
-            the weight.
+        likelihood_sigma: pixel scale ``s`` of the likelihood (default 20 / 10), wider than
+            the true pixel noise (2 px by default) on purpose: with ``2K`` observed
+            coordinates a likelihood at the true noise leaves one particle with all the weight.
         leaf: leaf rule of the tree search (``"uniform"`` or ``"weighted"``).
         candidates: tree walks per particle and frame (see :meth:`ImplicitModel.sample`;
             1 = the paper's sampler).
         proposal: ``"bootstrap"`` (the paper's: sample the prior, weight by the likelihood)
-            or ``"gauss_newton"`` (the root moved towards the observations; module notes).
-        likelihood: ``"gaussian"`` or ``"student_t"`` (robust; module notes; proposal's
-            default: Gaussian / Student-t).
+            or ``"gauss_newton"`` (the root moved towards the observations; its weights are
+            exact importance weights of the root-diffused model and estimate the predictive
+            likelihood of the particle's prior step, module notes).
+        likelihood: ``"gaussian"`` or ``"student_t"`` (robust; default Gaussian / Student-t).
         dof: degrees of freedom ``ν`` of the Student-t likelihood.
         gn_steps: Gauss–Newton steps per particle and frame.
         root_noise: ``σ_r``, metres per frame, of the root diffusion (module notes;
-            proposal's default: 0, the paper's model / 0.03; Gauss–Newton needs it > 0).
-        heading_noise: ``σ_h``, radians per frame, of the heading diffusion (proposal's
-            default: 0 / 0.03; 0: the root's position only).
+            default: 0, the paper's model / 0.03; Gauss–Newton needs it > 0).
+        heading_noise: ``σ_h``, radians per frame, of the heading diffusion (default:
+            0 / 0.03; 0 for Gauss–Newton: the root's position only).
     """
 
     n_particles: int = eqx.field(static=True, default=300)
@@ -255,32 +252,11 @@ def robust_loglik(
     """Log-likelihood (up to a constant) of the normalised residuals ``r`` and the IRLS weight
     of each joint (module notes); joints with confidence 0 count for nothing."""
     on = conf > 0
-    r2 = jnp.where(on, jnp.sum(jnp.where(on[:, None], r, 0.0) ** 2, axis=-1), 0.0)
+    r = jnp.where(on[:, None], r, 0.0)
+    r2 = jnp.where(on, r[:, 0] ** 2 + r[:, 1] ** 2, 0.0)  # not a sum: slow under vmap
     if likelihood == "gaussian":
         return -0.5 * jnp.sum(conf * r2), conf
     return -0.5 * (dof + 2) * jnp.sum(conf * jnp.log1p(r2 / dof)), conf * (dof + 2) / (dof + r2)
-
-
-def _cholesky(h: Array) -> list[list[Array]]:
-    """Lower Cholesky factor of a small SPD matrix, unrolled (entries ``l[i][j]``, ``j ≤ i``):
-    elementwise work that vectorises over particles, unlike a batched LAPACK call."""
-    q = h.shape[0]
-    lo = [[h[0, 0]] * q for _ in range(q)]
-    for j in range(q):
-        lo[j][j] = jnp.sqrt(h[j, j] - sum(lo[j][k] ** 2 for k in range(j)))
-        for i in range(j + 1, q):
-            lo[i][j] = (h[i, j] - sum(lo[i][k] * lo[j][k] for k in range(j))) / lo[j][j]
-    return lo
-
-
-def _lower_solve(lo: list[list[Array]], b: Array, transpose: bool = False) -> Array:
-    """``L⁻¹ b`` (or ``L⁻ᵀ b``) by substitution with the factor of :func:`_cholesky`."""
-    q = len(lo)
-    x: list[Array] = [b[0]] * q
-    for i in range(q - 1, -1, -1) if transpose else range(q):
-        ks = range(i + 1, q) if transpose else range(i)
-        x[i] = (b[i] - sum((lo[k][i] if transpose else lo[i][k]) * x[k] for k in ks)) / lo[i][i]
-    return jnp.stack(x)
 
 
 def gauss_newton_root(
@@ -300,17 +276,12 @@ def gauss_newton_root(
     of one particle: minimise ``−log p(o | θ) + ½ θᵀ diag(precision) θ`` (design §12.4).
 
     Args:
-        camera: the camera.
-        obs: ``(K, 2)`` observed pixels.
-        conf: ``(K,)`` their confidences (0: missing, whatever the pixel).
-        x: ``(K, 3)`` the particle's joints after the prior's step.
-        root: ``(3,)`` its root position.
+        camera, obs, conf: the camera, ``(K, 2)`` observed pixels and ``(K,)`` confidences
+            (0: missing, whatever the pixel).
+        x, root: ``(K, 3)`` the particle's joints after the prior's step, ``(3,)`` its root.
         precision: ``(q,)`` prior precision of ``θ`` (``q = 3``: position; ``4``: and heading).
-        sigma: pixel scale ``s`` of the likelihood.
-        up: ``(3,)`` the vertical.
-        steps: Gauss–Newton steps.
-        likelihood: ``"gaussian"`` or ``"student_t"``.
-        dof: the Student-t's degrees of freedom.
+        sigma, up, steps: pixel scale ``s``, ``(3,)`` the vertical, Gauss–Newton steps.
+        likelihood, dof: ``"gaussian"`` or ``"student_t"`` and the latter's ``ν``.
 
     Returns:
         ``θ*`` ``(q,)`` and the Gauss–Newton Hessian ``H = Jᵀ W J + diag(precision)`` at it
@@ -319,33 +290,31 @@ def gauss_newton_root(
     on = (conf > 0)[:, None]
     obs = jnp.where(on, obs, 0.0)
     dof = jnp.asarray(dof, obs.dtype)
-
     rot = camera.rotation.astype(x.dtype)
+    q = precision.shape[0]
+
+    def to_camera(v):  # R v as elementwise products: tiny dots and sums are slow under vmap
+        return jnp.stack([sum(rot[i, j] * v[..., j] for j in range(3)) for i in range(3)], -1)
 
     def normal_eqs(th):
-        # residuals and their Jacobian in closed form, as elementwise products (no dots)
+        """``H`` and the gradient ``g``, the residuals' Jacobian in closed form."""
         arm = rigid_move(x, root, th.at[:3].set(0.0), up) - root  # (K, 3), turned
-        xc = jnp.sum(rot * (root + arm + th[:3])[:, None, :], axis=-1) + camera.translation
+        xc = to_camera(root + arm + th[:3]) + camera.translation
         z = xc[:, 2:]
-        px = camera.focal * xc[:, :2] / z + camera.center
-        r = jnp.where(on, (px - obs) / sigma, 0.0)  # (K, 2)
-        eye = jnp.broadcast_to(jnp.eye(3, dtype=x.dtype), (x.shape[0], 3, 3))
-        dx = jnp.concatenate([eye, jnp.cross(up, arm)[..., None]], axis=-1)[..., : th.shape[0]]
-        dxc = jnp.sum(rot[None, :, :, None] * dx[:, None], axis=2)  # (K, 3, q)
-        jac = (camera.focal / z[..., None]) * (
-            dxc[:, :2] - xc[:, :2, None] / z[..., None] * dxc[:, 2:]
-        )
-        jac = jnp.where(on[..., None], jac / sigma, 0.0)  # (K, 2, q)
-        w = robust_loglik(r, conf, likelihood, dof)[1]
-        wj = w[:, None, None] * jac  # products and sums, not dots: fused under vmap
-        h = jnp.sum(wj[..., :, None] * jac[..., None, :], axis=(0, 1)) + jnp.diag(precision)
-        return h, jnp.sum(wj * r[..., None], axis=(0, 1)) + precision * th
+        r = jnp.where(on, (camera.focal * xc[:, :2] / z + camera.center - obs) / sigma, 0.0)
+        w = robust_loglik(r, conf, likelihood, dof)[1][:, None] * on / sigma**2
+        dxc = [jnp.broadcast_to(rot[:, i], xc.shape) for i in range(3)]
+        dxc = [*dxc, to_camera(jnp.cross(up, arm))][:q]  # ∂x_c / ∂θ_i, (K, 3) each
+        jac = [camera.focal / z * (d[:, :2] - xc[:, :2] / z * d[:, 2:]) for d in dxc]
+        terms = [w * a * b for a in jac for b in jac] + [w * a * r * sigma for a in jac]
+        sums = jnp.sum(jnp.stack(terms), axis=(1, 2))  # one reduction over the joints
+        h = sums[: q * q].reshape(q, q) + jnp.diag(precision)
+        return h, sums[q * q :] + precision * th
 
     theta = jnp.zeros_like(precision)
     for _ in range(steps):  # unrolled: a few steps, fused into the caller's loop body
         h, g = normal_eqs(theta)
-        lo = _cholesky(h)
-        theta = theta - _lower_solve(lo, _lower_solve(lo, g), transpose=True)
+        theta = theta - jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(h), True), g)
     return theta, normal_eqs(theta)[0]
 
 
@@ -387,17 +356,16 @@ def _track_impl(
     theta_std = jnp.asarray([diffusion[0]] * 3 + [diffusion[1]], dt)[:q]
     dof = jnp.asarray(dof, dt)
 
-    def gn_move(key, obs, conf, x, root):
-        """One particle's Gauss–Newton proposal: moved joints, θ and log weight."""
+    def gn_move(e, obs, conf, x, root):
+        """One particle's proposal (``e``: its normal draw): moved joints, θ, log weight."""
         prec = 1.0 / theta_std**2
         m, h = gauss_newton_root(
             problem.camera, obs, conf, x, root, prec, likelihood_sigma, up, gn_steps,
             likelihood, dof,
         )  # fmt: skip
-        chol = _cholesky(h)
-        e = jax.random.normal(key, m.shape, dt)
-        th = m + _lower_solve(chol, e, transpose=True)  # ~ N(m, H⁻¹)
-        log_q = -0.5 * e @ e + sum(jnp.log(chol[i][i]) for i in range(len(chol)))
+        chol = jnp.linalg.cholesky(h)
+        th = m + jax.scipy.linalg.solve_triangular(chol.T, e, lower=False)  # ~ N(m, H⁻¹)
+        log_q = -0.5 * jnp.sum(e * e) + jnp.sum(jnp.log(jnp.diag(chol)))
         xs = rigid_move(x, root, th, up)
         r = (problem.camera.project(xs) - obs) / likelihood_sigma
         ll = robust_loglik(r, conf, likelihood, dof)[0]
@@ -419,13 +387,13 @@ def _track_impl(
         win = jnp.concatenate([win[:, 1:], psi[:, None]], axis=1)
         pos, head, rot, lp = dec(pose, pos, head)
         x = forward_kinematics_arrays(fm.skeleton, pos, rot, lp)[:, jidx]  # (N, K, 3)
-        k_move = jax.random.split(jax.random.fold_in(k_noise, 1), n)
+        e_move = jax.random.normal(jax.random.fold_in(k_noise, 1), (n, q), dt)
         th = None  # the root's rigid move (module notes)
         if proposal == "gauss_newton":
-            x, th, loglik = jax.vmap(gn_move, (0, None, None, 0, 0))(k_move, obs, conf, x, pos)
+            x, th, loglik = jax.vmap(gn_move, (0, None, None, 0, 0))(e_move, obs, conf, x, pos)
         else:
             if max(diffusion) > 0:  # the diffused model, sampled blind
-                th = theta_std * jax.vmap(lambda k: jax.random.normal(k, (q,), dt))(k_move)
+                th = theta_std * e_move
                 x = jax.vmap(rigid_move, (0, 0, 0, None))(x, pos, th, up)
             r = (problem.camera.project(x) - obs) / likelihood_sigma
             if likelihood == "gaussian":
@@ -484,19 +452,16 @@ def run_particle_filter(
     # the first T frames kept (cut on the host: eager slices compile once per length)
     T = problem.n_frames
     n_pad = bucket_length(T)
+    conf = np.asarray(problem.confidence)  # a missing pixel may hold anything: 0 (0 · r² = 0)
+    obs = np.where(conf[..., None] > 0, np.asarray(problem.observations), 0.0)
     inputs = _Inputs(
         joints=problem.joints,
         camera=problem.camera,
         init_window=problem.init_window,
         init_position=problem.init_position,
         init_heading=jnp.asarray(problem.init_heading),
-        # a missing joint's pixel may hold anything (check_problem): 0, so that 0 · r² is 0
-        observations=pad_frames(
-            np.where(np.asarray(problem.confidence)[..., None] > 0, problem.observations, 0.0),
-            n_pad,
-            axis=0,
-        ),
-        confidence=pad_frames(np.asarray(problem.confidence), n_pad, axis=0),
+        observations=pad_frames(obs, n_pad, axis=0),
+        confidence=pad_frames(conf, n_pad, axis=0),
     )
     out = _track_jit(
         model.database,
