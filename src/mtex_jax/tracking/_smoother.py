@@ -405,7 +405,6 @@ def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackR
         X_start = np.concatenate([X_init, X_start])
         prev = (jnp.asarray(p0, dt), jnp.asarray(psi0, dt))
     root_w = jnp.asarray(root_weights(D, body.root_cols, fps, opts.root_accel, opts.turn_accel), dt)
-    J = fm.skeleton.n_joints
     run = _batch if opts.lag is None else _fixed_lag
     args = (texture, body, tx, problem, X_start, n_init, prev, obs, conf, sigma, root_w, floor, dt)
     X, fr, labels = run(opts, *args)
@@ -435,7 +434,6 @@ def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackR
         errs = joint_errors(P, np.asarray(problem.truth))
     bones = np.asarray(fr.bone_scale) if opts.bones else None
     put = lambda a: None if a is None else as_array(np.asarray(a).astype(dt))
-    del J
     return TrackResult(
         prior="texture" if isinstance(opts.prior, TexturePrior) else "smooth",
         n_particles=0,
