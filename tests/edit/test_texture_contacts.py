@@ -39,6 +39,9 @@ def _anonymous(m: mj.Motion) -> mj.Motion:
 def _same_contacts(a, b) -> None:
     assert a.feet == b.feet and a.fps == b.fps
     np.testing.assert_allclose(a.floor, b.floor, rtol=1e-12, atol=1e-12)
+    assert (a.stance is None) == (b.stance is None)
+    if a.stance is not None:
+        np.testing.assert_allclose(a.stance, b.stance, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(a.height_threshold, b.height_threshold, rtol=1e-12)
     np.testing.assert_allclose(a.speed_threshold, b.speed_threshold, rtol=1e-12)
 
@@ -78,6 +81,32 @@ def test_model_file_keeps_the_contacts_and_old_files_load(tex, tmp_path):
         tmp_path / "tex.npz", old, drop, lambda m: {k: v for k, v in m.items() if k != "contacts"}
     )
     assert mj.load_texture(old).contacts is None
+    # a file written before the stance height was fitted: the floor stands in for it
+    pre = tmp_path / "pre.npz"
+
+    def no_stance(m):
+        c = {k: v for k, v in m["contacts"].items() if k != "stance"}
+        return {**m, "contacts": c}
+
+    rewrite_npz(tmp_path / "tex.npz", pre, {}, no_stance)
+    c = mj.load_texture(pre).contacts
+    assert c is not None and c.stance is None and c.stance_height == c.floor
+
+
+def test_stance_height_is_the_median_lowest_foot(tex):
+    """The stance height is the median over the training frames of the lowest foot's height
+    (a numpy re-derivation from the clips' forward kinematics), above the floor and below every
+    foot's median height."""
+    c = tex.contacts
+    lowest = []
+    for m in edit_setup._clips():
+        m = m.resample(edit_setup.FPS)
+        W = np.asarray(mj.forward_kinematics(m))
+        lowest.append(W[:, list(c.feet), m.skeleton.up_axis].min(axis=1))
+    np.testing.assert_allclose(c.stance, np.median(np.concatenate(lowest)), atol=1e-9)
+    assert c.floor < c.stance <= c.height_threshold.max()
+    with pytest.raises(ValueError, match="stance"):
+        dataclasses.replace(c, stance=c.floor - 0.01)
 
 
 def test_synthesize_clean_uses_the_texture_contacts(tex, monkeypatch):

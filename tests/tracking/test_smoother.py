@@ -10,8 +10,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 import pytest
+import scipy.optimize
 
 import mtex_jax as mj
 from mtex_jax.core import count_compiles
@@ -19,6 +19,7 @@ from mtex_jax.edit import WhitenedTextons, prior_residuals
 
 # the subject of these tests: the smoother's pieces (the term's rows, one banded solve)
 from mtex_jax.edit._banded.terms import residual_rows
+from mtex_jax.edit._prior import _REL_FLOOR  # the whitening's ridge, re-derived below
 from mtex_jax.io import load_salsa
 from mtex_jax.tracking import (
     Camera,
@@ -130,16 +131,19 @@ def test_reprojection_rows_match_finite_differences(texture, clip, problem, loss
 
 
 def test_map_solves_the_dense_objective(texture, clip, problem):
-    """One banded solve of a tiny problem (8 frames) minimises the objective written densely as
-    one residual vector (the texture prior's residuals, the root's second differences, the
-    anchor, the reprojection): it is a stationary point of it (gradient by autodiff of the
-    dense form), at a cost no higher than a dense Levenberg-Marquardt solve's (optimistix,
-    dense Jacobian). The two do not agree channel by channel: the objective is nearly flat
-    along channels that move no observed joint much (design §12.3 notes the open item)."""
+    """One banded solve of a tiny problem (8 frames, the default prior's textons) ends at the
+    minimum of the objective written densely as one residual vector (the texture prior's
+    residuals, the root's second differences, the anchor, the reprojection): scipy's exact
+    Newton (trust region, the dense Hessian by autodiff), started there, converges within a few
+    iterations to a point whose joints are within 1 mm and whose cost is the same to 1e-5
+    (measured: 2 iterations, 0.54 mm, 2e-6). The objective is not convex: from the start
+    itself Newton may end in another basin (a limb mirrored in depth), so the reference is
+    the dense solver's own convergence from the banded answer."""
     body, Xt = _truth_X(texture, clip, problem)
     T = 8
     X0 = Xt[:T] + 0.03 * jax.random.normal(jax.random.key(2), Xt[:T].shape)
     fr = _frame(texture, body, problem, 2.0, Gaussian(), T, floor_contact=False)
+    fr = eqx.tree_at(lambda f: f.tx, fr, TexturePrior().whitened(texture.textons, jnp.float64))
     seg = _single(1, T)
     n = jnp.asarray(T)
     X_map, _ = _solve(fr, TexturePrior(), seg, X0, jnp.zeros((T,), bool), None, n, 60)
@@ -147,40 +151,58 @@ def test_map_solves_the_dense_objective(texture, clip, problem):
     keep = fr.root_w == 0
     rep = fr.reproj
 
-    def residuals(X: jax.Array, _args) -> jax.Array:
+    def cost(x: jax.Array) -> jax.Array:
+        X = x.reshape(X0.shape)
         e, g, o = prior_residuals(fr.tx, seg, jnp.where(keep, X, Y0), n)
         d2 = (X[2:] - 2 * X[1:-1] + X[:-2]) * fr.root_w
         r = rep.residual(body.positions(X)) / rep.sigma
         parts = (e, g, o, d2, 1e-4 * (X - X0), r)
-        return jnp.concatenate([a.reshape(-1) for a in parts])
+        return 0.5 * jnp.sum(jnp.stack([jnp.sum(a**2) for a in parts]))
 
-    solver = optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12)
-    ref = optx.least_squares(residuals, solver, X0, max_steps=400).value
-    cost = lambda X: 0.5 * jnp.sum(residuals(X, None) ** 2)
-    assert float(cost(X_map)) <= float(cost(ref)) * (1 + 1e-9)
-    g0 = np.abs(np.asarray(jax.grad(cost)(X0))).max()
-    g = np.abs(np.asarray(jax.grad(cost)(X_map))).max()
-    # measured: 20 against 5.9e4 (3e-4): the banded solve's stopping test ends it there
-    assert g < 1e-3 * g0, f"gradient {g:.3g} at the banded solution ({g0:.3g} at the start)"
+    f, grad, hess = (jax.jit(h) for h in (cost, jax.grad(cost), jax.hessian(cost)))
+    ref = scipy.optimize.minimize(
+        lambda x: float(f(x)),
+        np.asarray(X_map).ravel(),
+        jac=lambda x: np.asarray(grad(x)),
+        hess=lambda x: np.asarray(hess(x)),
+        method="trust-exact",
+        options={"gtol": 1e-6, "maxiter": 200},
+    )
+    g_ref = np.abs(np.asarray(grad(jnp.asarray(ref.x)))).max()
+    assert g_ref < 1e-3, f"the dense reference did not converge: gradient {g_ref:.3g}"
+    assert ref.nit <= 10, f"the dense Newton needed {ref.nit} iterations from the banded answer"
+    c_map = float(f(X_map.ravel()))
+    assert abs(c_map - ref.fun) <= 1e-5 * abs(ref.fun), f"cost {c_map:.8g} vs dense {ref.fun:.8g}"
+    P_ref = body.observed(jnp.asarray(ref.x.reshape(X0.shape)))
+    d = np.linalg.norm(np.asarray(body.observed(X_map)) - np.asarray(P_ref), axis=-1)
+    assert d.max() < 1e-3, f"joints {1000 * d.max():.2f} mm from the dense minimum"
 
 
 def test_noise_free_observations_recover_the_truth(texture, clip):
-    """With noise-free pixels of the true skeleton and a precise reprojection (0.01 px), the
-    solve from a nearby start comes back towards the truth: measured median 2.9 mm, worst
-    30.5 mm (the issue's 1 mm at every joint is not yet met: the solve stops before it
-    converges along nearly flat channels, design §12.3)."""
+    """Noise-free pixels of the true skeleton, a precise reprojection (0.01 px) and a start 2 cm
+    (z-scored) off with the root 6 cm and 0.05 rad off: three rounds of the solve (the prior
+    re-expanded at each, as the smoother's rounds do) explain every pixel to 0.05 px and put
+    95 % of the joint-frames within 1 mm of the truth (measured: 95.6 %, median 0.2 mm). The
+    rest, one leg in a few frames, sits exactly on the same pixels (measured worst 26 mm): a
+    thigh nearly square to its camera ray has a mirror pose in depth that one camera cannot
+    tell apart (design §12.3), which no solver tolerance removes."""
     prob = make_problem(jax.random.key(0), texture, clip, n_frames=20, start=60, pixel_noise=0.0)
     body, Xt = _truth_X(texture, clip, prob)
     T = prob.n_frames
     fr = _frame(texture, body, prob, 0.01, Gaussian(), T, floor_contact=False)
-    X0 = Xt + 0.02 * jax.random.normal(jax.random.key(3), Xt.shape)
+    X = Xt + 0.02 * jax.random.normal(jax.random.key(3), Xt.shape)
     c0, c1, cy = body.root_cols
-    X0 = X0.at[:, c0].add(0.03).at[:, c1].add(-0.05).at[:, cy].add(0.05)
+    X = X.at[:, c0].add(0.03).at[:, c1].add(-0.05).at[:, cy].add(0.05)
     seg = _single(1, T)
-    X, _ = _solve(fr, TexturePrior(), seg, X0, jnp.zeros((T,), bool), None, jnp.asarray(T), 40)
-    err = np.linalg.norm(np.asarray(body.observed(X)) - np.asarray(prob.truth), axis=-1)
-    assert np.median(err) < 5e-3, f"median joint error {1000 * np.median(err):.2f} mm"
-    assert err.max() < 0.04, f"largest joint error {1000 * err.max():.2f} mm"
+    for _ in range(3):
+        X, _ = _solve(fr, TexturePrior(), seg, X, jnp.zeros((T,), bool), None, jnp.asarray(T), 40)
+    P = body.observed(X)
+    px = np.abs(np.asarray(prob.camera.project(P)) - np.asarray(prob.observations))
+    assert px.max() < 0.05, f"largest pixel residual {px.max():.3f} px"
+    err = np.linalg.norm(np.asarray(P) - np.asarray(prob.truth), axis=-1)
+    assert np.median(err) < 5e-4, f"median joint error {1000 * np.median(err):.2f} mm"
+    share = float((err < 1e-3).mean())
+    assert share >= 0.95, f"{100 * share:.1f} % of the joint-frames within 1 mm"
 
 
 def test_bone_lengths_recovered_on_a_scaled_skeleton(texture, clip):
@@ -340,3 +362,75 @@ def test_float32_smoke(texture, problem):
     r = track(jax.random.key(0), t32, p32)
     assert r.mean_joints.dtype == jnp.float32
     assert np.all(np.isfinite(np.asarray(r.mean_joints))) and r.mean_error < 0.1
+
+
+def test_process_noise_inflation_adds_to_every_noise_covariance(texture):
+    """``WhitenedTextons.of(..., noise=ν)`` whitens with ``B Bᵀ + ν² I`` (innovations),
+    ``S₀ + ν² I`` (initial pairs) and ``σ² + ν²`` (out of the subspace): numpy re-derivation."""
+    t = texture.textons
+    nu = 0.03
+    tx = WhitenedTextons.of(t, jnp.float64, nu)
+    B = np.tril(np.asarray(t.B))
+    for i in range(B.shape[0]):
+        k = B.shape[-1]
+        Q = B[i] @ B[i].T + nu**2 * np.eye(k)
+        W = np.asarray(tx.B_inv[i])
+        np.testing.assert_allclose(W @ Q @ W.T, np.eye(k), atol=1e-8)
+        S0 = 0.5 * (np.asarray(t.S0[i]) + np.asarray(t.S0[i]).T) + nu**2 * np.eye(2 * k)
+        S0 = S0 + _REL_FLOOR * np.trace(S0) / (2 * k) * np.eye(2 * k)  # the whitening's ridge
+        L = np.asarray(tx.L0_inv[i])
+        np.testing.assert_allclose(L @ S0 @ L.T, np.eye(2 * k), atol=1e-8)
+    np.testing.assert_allclose(
+        np.asarray(tx.inv_sigma), 1 / np.sqrt(np.asarray(t.sigma2) + nu**2), rtol=1e-12
+    )
+    with pytest.raises(ValueError, match="noise"):
+        WhitenedTextons.of(t, jnp.float64, -1.0)
+    with pytest.raises(ValueError, match="noise"):
+        TexturePrior(noise=float("nan"))
+
+
+def test_smooth_prior_quadratic_is_its_cost(texture, clip, problem):
+    """``SmoothPrior.quadratic`` (second differences plus each channel's training marginal)
+    gives the Hessian and gradient of its cost written out directly (autodiff, dense)."""
+    body, Xt = _truth_X(texture, clip, problem)
+    fm = texture.feature_map
+    T, D = 6, fm.dim
+    X0 = Xt[:T]
+    root_w = jnp.asarray(root_weights(D, body.root_cols, fm.fps, 6.0, 60.0))
+    pr = SmoothPrior(pose_sd=0.7)
+    tx = WhitenedTextons.of(texture.textons, jnp.float64)  # not read by this prior
+    (H0, H1, H2), g = pr.quadratic(tx, _single(0, T), X0, X0, root_w, fm.fps, T)
+    w = jnp.where(root_w > 0, root_w, fm.fps**2 / pr.accel)
+    keep = (root_w == 0).astype(X0.dtype)
+
+    def cost(X):
+        d2 = (X[2:] - 2 * X[1:-1] + X[:-2]) * w
+        return 0.5 * jnp.sum(d2**2) + 0.5 * jnp.sum(keep * (X / 0.7) ** 2)
+
+    Hd = np.asarray(jax.hessian(cost)(X0)).reshape(T, D, T, D)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(jax.grad(cost)(X0)), atol=1e-9)
+    for t in range(T):
+        np.testing.assert_allclose(np.asarray(H0[t]), Hd[t, :, t], atol=1e-6)
+        if t >= 1:
+            np.testing.assert_allclose(np.asarray(H1[t]), Hd[t, :, t - 1], atol=1e-6)
+        if t >= 2:
+            np.testing.assert_allclose(np.asarray(H2[t]), Hd[t, :, t - 2], atol=1e-6)
+
+
+def test_float32_tracks_a_whole_clip(texture, clip):
+    """JAX's default precision tracks 150 frames of a dancer the texture never saw, batch and
+    fixed-lag, about as well as double precision (before the process-noise inflation of design
+    §12.2 the batch smoother diverged to metres here)."""
+    cast = lambda tree: jax.tree.map(
+        lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, tree
+    )
+    prob = make_problem(jax.random.key(1), texture, clip, n_frames=150, start=30)
+    t32, p32 = cast(texture), cast(prob)
+    for method in (MapSmoother(), MapSmoother(lag=10)):
+        r = track(jax.random.key(0), t32, p32, method)
+        assert r.mean_joints.dtype == jnp.float32
+        err = np.asarray(r.error)
+        assert np.all(np.isfinite(err))
+        # measured: see the note of this test's issue
+        assert err.mean() < 0.06, f"lag={method.lag}: mean error {1000 * err.mean():.1f} mm"
+        assert err.max() < 0.3, f"lag={method.lag}: worst frame {1000 * err.max():.1f} mm"

@@ -443,6 +443,8 @@ def save_contacts(path: str | os.PathLike[str], contacts: ContactModel) -> None:
         "floor": float(contacts.floor),
         "fps": float(contacts.fps),
     }
+    if contacts.stance is not None:
+        meta["stance"] = float(contacts.stance)
     save_arrays_json(path, arrays, meta)
 
 
@@ -474,6 +476,7 @@ def load_contacts(path: str | os.PathLike[str]) -> ContactModel:
             arrays["speed_threshold"],
             meta["floor"],
             meta["fps"],
+            meta.get("stance"),
         )
     except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as e:
         raise ValueError(f"{path}: invalid contact model file: {e}") from None

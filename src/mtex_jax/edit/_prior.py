@@ -125,8 +125,13 @@ class WhitenedTextons(eqx.Module):
                 raise ValueError(f"WhitenedTextons.{name} must have shape {shape}")
 
     @classmethod
-    def of(cls, textons, dtype) -> WhitenedTextons:
-        """From a stacked :class:`~mtex_jax.texture.Texton` (its public fields), in ``dtype``."""
+    def of(cls, textons, dtype, noise: float = 0.0) -> WhitenedTextons:
+        """From a stacked :class:`~mtex_jax.texture.Texton` (its public fields), in ``dtype``.
+
+        ``noise > 0`` adds ``noise²·I`` to every noise covariance (the innovations', the
+        initial pairs' and the out-of-subspace variance ``σ²``): process-noise inflation, a
+        prior that allows for motion a little off the textons' dynamics (a tracker's new
+        dancer, design §12.2); ``0`` is the texture itself."""
         f = lambda a: jnp.asarray(a, dtype)
         B, S0 = f(textons.B), f(textons.S0)
         if B.ndim == 2:  # a single texton
@@ -134,6 +139,12 @@ class WhitenedTextons(eqx.Module):
             B, S0 = B[None], S0[None]
         k = B.shape[-1]
         eye = jnp.eye(k, dtype=dtype)
+        if noise < 0 or not np.isfinite(noise):
+            raise ValueError(f"WhitenedTextons.of: noise must be ≥ 0 and finite, got {noise}")
+        if noise > 0:
+            Q = jnp.einsum("nkl,nml->nkm", B, B) + noise**2 * eye
+            B = jnp.linalg.cholesky(Q)
+            S0 = S0 + noise**2 * jnp.eye(2 * k, dtype=dtype)
         diag = jnp.abs(jnp.diagonal(B, axis1=-2, axis2=-1))
         floor = _REL_FLOOR * jnp.maximum(diag.max(-1, keepdims=True), 1e-12)
         Bf = jnp.tril(B) + jnp.einsum("nk,kl->nkl", jnp.maximum(floor - diag, 0.0), eye)
@@ -143,7 +154,7 @@ class WhitenedTextons(eqx.Module):
         eye2 = jnp.eye(2 * k, dtype=dtype)
         L0 = jnp.linalg.cholesky(S0s + (_REL_FLOOR * scale)[:, None, None] * eye2)
         L0_inv = jax.scipy.linalg.solve_triangular(L0, jnp.broadcast_to(eye2, L0.shape), lower=True)
-        s2 = jnp.maximum(f(textons.sigma2), 1e-12)
+        s2 = jnp.maximum(f(textons.sigma2) + noise**2, 1e-12)
         return cls(
             mu=f(textons.mu),
             C=f(textons.C),

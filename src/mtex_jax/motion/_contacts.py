@@ -135,6 +135,9 @@ class ContactModel:
             contact.
         floor: the training floor ``h_floor`` (metres).
         fps: the frame rate the speeds are measured at.
+        stance: the height the feet stand at: the median over the training frames of the
+            lowest foot's height (metres; a tracker's floor term, design §12.2). ``None`` in a
+            model read from a file written before it was fitted: then ``floor``.
 
     Raises:
         ValueError: a value out of range or of the wrong shape (``TypeError`` for a wrong type),
@@ -147,6 +150,7 @@ class ContactModel:
     speed_threshold: np.ndarray
     floor: float
     fps: float
+    stance: float | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.skeleton, Skeleton):
@@ -164,7 +168,11 @@ class ContactModel:
         if (st <= 0).any():
             raise ValueError("ContactModel.speed_threshold must be positive (m/s)")
         fps = check_real(self.fps, "ContactModel.fps", low=0.0, open_low=True, high=_MAX_FPS)
+        stance = self.stance
+        if stance is not None:
+            stance = check_real(stance, "ContactModel.stance", low=floor, high=MAX_ABS_VALUE)
         for name, value in (
+            ("stance", stance),
             ("feet", feet),
             ("height_threshold", ht),
             ("speed_threshold", st),
@@ -172,6 +180,11 @@ class ContactModel:
             ("fps", fps),
         ):
             object.__setattr__(self, name, value)
+
+    @property
+    def stance_height(self) -> float:
+        """The height the feet stand at (``stance``; ``floor`` where it is not known)."""
+        return float(self.floor if self.stance is None else self.stance)
 
     @property
     def foot_names(self) -> tuple[str, ...]:
@@ -295,7 +308,8 @@ def fit_contacts(
     """Fit the per-foot height and speed thresholds and the floor on training clips.
 
     ``H_f = median_t h_t(f)``, ``S_f = 10^{otsu(log₁₀ max(s_t(f), 10⁻⁴))}`` over all training
-    frames, ``h_floor = min_{t, f} h_t(f)`` (see the module notes for why these rules).
+    frames, ``h_floor = min_{t, f} h_t(f)`` (see the module notes for why these rules), and the
+    stance height ``median_t min_f h_t(f)``.
 
     The feet are :func:`foot_joints` of the skeleton: by name, else the lowest leaf joint of
     each leg by the joints' median height over the training frames.
@@ -325,4 +339,5 @@ def fit_contacts(
         speed_threshold=np.array([10.0 ** _otsu(log_s[:, k]) for k in range(len(idx))]),
         floor=float(h.min()),
         fps=f,
+        stance=float(np.median(h.min(axis=1))),
     )

@@ -317,6 +317,8 @@ class MotionTexture(eqx.Module):
                 "feet": [int(f) for f in self.contacts.feet],
                 "floor": float(self.contacts.floor),
             }
+            if self.contacts.stance is not None:
+                meta["contacts"]["stance"] = float(self.contacts.stance)
         save_arrays_json(path, arrays, meta)
 
 
@@ -426,6 +428,7 @@ def _contacts_of(
             arrays["contacts.speed_threshold"],
             c["floor"],
             fm.fps,
+            c.get("stance"),
         )
     except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"contacts: {e}") from None

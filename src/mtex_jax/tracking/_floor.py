@@ -4,7 +4,9 @@ Monocular observations leave the body's size and its distance traded against eac
 figure 4 % smaller and 4 % nearer projects almost alike. A dancer stands on the floor, so the
 lowest of the feet's heights at frame ``t``, ``m_t = −τ log Σ_f exp(−h_{tf}/τ)`` (a soft minimum,
 ``τ = 1 cm``), should be the height the texture's training feet stand at (its contact model's
-floor). The residual ``(m_t − h_floor − floor) / s`` is priced by a Student-t loss of
+stance height ``h_stance``, the median over the training frames of the lowest foot's height;
+the ankle joints stand some 5 cm above the floor). The residual
+``(m_t − h_stance − floor) / s`` is priced by a Student-t loss of
 ``ν = 1`` (a jump, with both feet up, costs only the logarithm of its height): ``s = 3 cm``.
 """
 
@@ -26,7 +28,8 @@ class FloorContact(FrameResidual):
     Attributes:
         slots: the feet's indices among the solve's kept joints (static).
         up: the up axis (static).
-        height: the height the feet's joints stand at (the training floor plus the world's).
+        height: the height the feet's joints stand at (the training stance height plus the
+            world's floor).
         valid: ``(T,)`` 1 at a frame the term applies to (0: padding, held frames).
         scale: ``s``, metres.
         tau: the soft minimum's temperature, metres.

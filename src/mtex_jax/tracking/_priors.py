@@ -10,8 +10,10 @@ Each member gives, at the current estimate ``X₀``, the prior's Hessian as thre
   over every channel but the root's three world channels, which the texture models as
   displacements; for those, a second-difference prior of the root's world trajectory
   (``root_accel`` m/s², ``turn_accel`` rad/s² standard deviations);
-* :class:`SmoothPrior`: the second-difference prior alone, on every channel (a baseline with
-  no texture: ``accel`` z-scored units per second² for the texture's channels).
+* :class:`SmoothPrior`: the second-difference prior on every channel (a baseline with no
+  texture: ``accel`` z-scored units per second² for the texture's channels), with each
+  texture channel's training marginal, ``N(0, pose_sd²)`` in z-scored units, so that
+  channels the camera cannot see (a foot's twist) stay where the training poses were.
 """
 
 from __future__ import annotations
@@ -43,6 +45,10 @@ class MotionPrior(eqx.Module):
 
     #: whether the prior needs a segmentation of the estimate (re-estimated between rounds)
     segmented: bool = eqx.field(static=True, default=False)
+
+    def whitened(self, textons: Any, dtype: Any) -> WhitenedTextons:
+        """The texture's textons as this prior uses them (whitened, in ``dtype``)."""
+        return WhitenedTextons.of(textons, dtype)
 
     @abc.abstractmethod
     def quadratic(
@@ -80,14 +86,25 @@ class TexturePrior(MotionPrior):
 
     Attributes:
         weight: multiplies the texture's negative log-likelihood (1: the MAP estimate).
+        noise: process-noise inflation, z-scored units per frame: ``noise²·I`` is added to
+            every texton's noise covariances (:meth:`~mtex_jax.edit.WhitenedTextons.of`), a
+            prior for a dancer a little off the training dancer's dynamics; it also bounds
+            the prior's stiffness, which single precision needs (0.03 chosen on folds of the
+            training clips, design §12.2; ``0``: the texture itself).
     """
 
     segmented: bool = eqx.field(static=True, default=True)
     weight: float = eqx.field(static=True, default=1.0)
+    noise: float = eqx.field(static=True, default=0.03)
 
     def __check_init__(self) -> None:
         if not (np.isfinite(self.weight) and self.weight > 0):
             raise ValueError(f"TexturePrior: weight must be positive, got {self.weight}")
+        if isinstance(self.noise, bool) or not (np.isfinite(self.noise) and self.noise >= 0):
+            raise ValueError(f"TexturePrior: noise must be ≥ 0 and finite, got {self.noise!r}")
+
+    def whitened(self, textons, dtype):
+        return WhitenedTextons.of(textons, dtype, self.noise)
 
     def quadratic(self, tx, seg, X0, Y0, root_w, fps, n_valid):
         del fps
@@ -114,19 +131,32 @@ class SmoothPrior(MotionPrior):
     Attributes:
         accel: standard deviation of each texture channel's second derivative, in z-scored
             units per second² (the root's world channels use the smoother's root settings).
+        pose_sd: standard deviation of each texture channel about its training mean, in
+            z-scored units (1: the training marginal; ``None``: no such term).
     """
 
     accel: float = eqx.field(static=True, default=150.0)
+    pose_sd: float | None = eqx.field(static=True, default=1.0)
 
     def __check_init__(self) -> None:
         if not (np.isfinite(self.accel) and self.accel > 0):
             raise ValueError(f"SmoothPrior: accel must be positive, got {self.accel}")
+        if self.pose_sd is not None and not (np.isfinite(self.pose_sd) and self.pose_sd > 0):
+            raise ValueError(f"SmoothPrior: pose_sd must be positive or None, got {self.pose_sd}")
 
     def quadratic(self, tx, seg, X0, Y0, root_w, fps, n_valid):
         T, D = X0.shape
-        del tx, seg, Y0
+        del tx, seg
+        dt = X0.dtype
         w = jnp.where(root_w > 0, root_w, fps * fps / self.accel)
-        return _second_difference(T, D, w.astype(X0.dtype), X0, n_valid)
+        bands, grad = _second_difference(T, D, w.astype(dt), X0, n_valid)
+        if self.pose_sd is None:
+            return bands, grad
+        # ½ Σ_t ‖y_t / pose_sd‖² over the texture's channels (z-scored: the training mean is 0)
+        ok = (jnp.arange(T) < n_valid).astype(dt)
+        p = (root_w == 0).astype(dt) / self.pose_sd**2
+        H0 = bands[0] + ok[:, None, None] * jnp.diag(p)
+        return (H0, bands[1], bands[2]), grad + ok[:, None] * p * Y0
 
 
 def root_weights(

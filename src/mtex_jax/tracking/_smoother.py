@@ -126,7 +126,13 @@ class MapSmoother(Tracker):
             isinstance(self.lag, bool) or not isinstance(self.lag, int | np.integer) or self.lag < 1
         ):
             raise ValueError(f"MapSmoother: lag must be None or an integer ≥ 1, got {self.lag!r}")
-        for name in ("root_accel", "turn_accel", "scale_sd", "bone_sd", "anneal_from"):
+        for name in (
+            "root_accel",
+            "turn_accel",
+            "scale_sd",
+            "bone_sd",
+            "anneal_from",
+        ):
             v = getattr(self, name)
             if isinstance(v, bool) or not (np.isfinite(v) and v > 0):
                 raise ValueError(f"MapSmoother: {name} must be positive and finite, got {v!r}")
@@ -167,9 +173,8 @@ class _Frame(eqx.Module):
         feet on it (at frames where ``valid``)."""
         if self.contact is None:
             return (self.reproj,)
-        c = eqx.tree_at(
-            lambda c: (c.height, c.valid), self.contact, (self.contact.height + self.floor, valid)
-        )
+        height = self.contact.height + self.floor
+        c = eqx.tree_at(lambda c: (c.height, c.valid), self.contact, (height, valid))
         return (self.reproj, c)
 
 
@@ -182,8 +187,11 @@ def _solve(
     prev: tuple[Array, Array] | None,
     n_valid: Array,
     max_steps: int,
+    rtol: float = 1e-7,
+    xtol: float = 1e-6,
 ) -> tuple[Array, Array]:
-    """One round: the prior's quadratic at ``X₀`` plus the reprojection, by banded GN."""
+    """One round: the prior's quadratic at ``X₀`` plus the reprojection, by banded GN (its
+    stopping tolerances ``rtol``, ``xtol`` as :func:`~mtex_jax.edit.solve_banded`'s)."""
     body = fr.body
     T, D = X0.shape
     dt = X0.dtype
@@ -213,8 +221,8 @@ def _solve(
         n_valid=n_valid,
         rounds=1,
         max_steps=max_steps,
-        rtol=1e-7,
-        xtol=1e-6,
+        rtol=rtol,
+        xtol=xtol,
         colouring=channel_colouring(body.feature_map, body.order),
         terms=fr.terms((~held & (jnp.arange(T) < n_valid)).astype(dt)),
         linear=grad,
@@ -256,8 +264,9 @@ def _bone_step(
 
     A change of the body's overall size moves every ``movable`` frame's root along its camera
     ray by the same factor (about the camera's centre), so the step follows the valley in
-    which one camera cannot tell a bigger body from a farther one; the floor term and the
-    priors decide where in it the body is. Returns the frame inputs and the moved ``X``."""
+    which one camera cannot tell a bigger body from a farther one; the bones' priors decide
+    where in it the body is (the floor term enters only to estimate the floor's height).
+    Returns the frame inputs and the moved ``X``."""
     body = fr.body
     dt = X.dtype
     J = fr.bone_scale.shape[0]
@@ -273,10 +282,15 @@ def _bone_step(
     log_b0 = jnp.log(fr.bone_scale)
     size0 = jnp.mean(log_b0[used])
     mv = movable.astype(dt)
-    terms = fr.terms(mv)
+    # the floor term prices the floor's height, not the body's size: on folds of the training
+    # clips its per-frame pull (a lowest foot off its stance height in a step) moved the body's
+    # depth by tens of centimetres through the size–depth valley (design §12.2)
+    all_terms = fr.terms(mv)
+    terms: tuple[Any, ...] = all_terms if estimate_floor else all_terms[:1]
     P0 = body.positions(X, fr.bone_scale, fr.floor)
     sws = [jnp.sqrt(t.weights(t.residual(P0))) for t in terms]
     scale_sd, bone_sd = sd[0], sd[1]
+    has_contact = len(terms) > 1 and fr.contact is not None
 
     def moved(theta: Array) -> tuple[Array, Array, Array]:
         g, c, fl = theta[0], theta[1 : 1 + J], theta[1 + J]
@@ -295,8 +309,9 @@ def _bone_step(
         Xm, b, f = moved(theta)
         P = body.positions(Xm, b, f)
         parts = [(t.residual(P) * w).reshape(-1) for t, w in zip(terms, sws, strict=True)]
-        if len(terms) > 1 and fr.contact is not None:  # its height moves with the floor
-            c2 = eqx.tree_at(lambda c: c.height, terms[1], fr.contact.height + f)
+        if has_contact:  # its height moves with the floor
+            floor_term = all_terms[1]
+            c2 = eqx.tree_at(lambda c: c.height, floor_term, floor_term.height - fr.floor + f)
             parts[1] = (c2.residual(P) * sws[1]).reshape(-1)
         g, c = theta[0], theta[1 : 1 + J]
         return jnp.concatenate([*parts, (g / scale_sd)[None], c / bone_sd])
@@ -377,7 +392,7 @@ def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackR
     dt = jnp.asarray(texture.textons.mu).dtype
     fps = float(fm.fps)
     D = fm.dim
-    tx = WhitenedTextons.of(texture.textons, dt)
+    tx = opts.prior.whitened(texture.textons, dt)
     sigma = float(opts.pixel_sigma or max(float(np.asarray(problem.pixel_noise)), 1.0))
     obs = np.asarray(problem.observations, dtype=np.float64)
     conf = np.asarray(problem.confidence, dtype=np.float64)
@@ -461,7 +476,7 @@ def _floor_term(texture: MotionTexture, body: Body, T_pad: int, dt) -> FloorCont
     return FloorContact(
         slots=tuple(feet),
         up=body.feature_map.skeleton.up_axis,
-        height=jnp.asarray(cm.floor, dt),
+        height=jnp.asarray(cm.stance_height, dt),
         valid=jnp.zeros((T_pad,), dt),
     )
 
@@ -573,6 +588,7 @@ def _lag_run(
     n: Array,
     lag: int,
     max_steps: int,
+    prior: MotionPrior,
 ) -> Array:
     """Frames ``t0 … n − 1`` one at a time (module notes): a ``fori_loop`` over new frames, each
     a banded solve of the window of ``lag + 3`` frames ending at the new one."""
@@ -583,7 +599,6 @@ def _lag_run(
     _up, h0, h1 = ground_axes(body.feature_map.skeleton.up_axis)
     held = jnp.arange(W) < 2
     root = jnp.zeros(X_all.shape[1], dt).at[jnp.array([c0, c1, cy])].set(1.0)
-    prior = TexturePrior()
 
     def step(t: Array, X_all: Array) -> Array:
         s = t - lag - 2  # the window's first (held) row
@@ -672,5 +687,6 @@ def _fixed_lag(
         jnp.asarray(n + front),
         L,
         opts.lag_steps,
+        opts.prior,
     )
     return np.asarray(X)[front : front + n], fr, None
