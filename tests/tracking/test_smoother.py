@@ -419,8 +419,9 @@ def test_smooth_prior_quadratic_is_its_cost(texture, clip, problem):
 
 def test_float32_tracks_a_whole_clip(texture, clip):
     """JAX's default precision tracks 150 frames of a dancer the texture never saw, batch and
-    fixed-lag, about as well as double precision (before the process-noise inflation of design
-    §12.2 the batch smoother diverged to metres here)."""
+    fixed-lag, as well as double precision (measured, both precisions: batch 26.6 mm mean,
+    81 mm worst; fixed-lag 48.4 and 97 mm). Before the process-noise inflation of design §12.2
+    the batch smoother diverged here in single precision (1,781 mm mean, 9.8 m worst)."""
     cast = lambda tree: jax.tree.map(
         lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, tree
     )
@@ -431,6 +432,5 @@ def test_float32_tracks_a_whole_clip(texture, clip):
         assert r.mean_joints.dtype == jnp.float32
         err = np.asarray(r.error)
         assert np.all(np.isfinite(err))
-        # measured: see the note of this test's issue
         assert err.mean() < 0.06, f"lag={method.lag}: mean error {1000 * err.mean():.1f} mm"
         assert err.max() < 0.3, f"lag={method.lag}: worst frame {1000 * err.max():.1f} mm"
