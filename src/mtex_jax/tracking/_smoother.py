@@ -126,13 +126,7 @@ class MapSmoother(Tracker):
             isinstance(self.lag, bool) or not isinstance(self.lag, int | np.integer) or self.lag < 1
         ):
             raise ValueError(f"MapSmoother: lag must be None or an integer ≥ 1, got {self.lag!r}")
-        for name in (
-            "root_accel",
-            "turn_accel",
-            "scale_sd",
-            "bone_sd",
-            "anneal_from",
-        ):
+        for name in ("root_accel", "turn_accel", "scale_sd", "bone_sd", "anneal_from"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (np.isfinite(v) and v > 0):
                 raise ValueError(f"MapSmoother: {name} must be positive and finite, got {v!r}")
@@ -187,11 +181,8 @@ def _solve(
     prev: tuple[Array, Array] | None,
     n_valid: Array,
     max_steps: int,
-    rtol: float = 1e-7,
-    xtol: float = 1e-6,
 ) -> tuple[Array, Array]:
-    """One round: the prior's quadratic at ``X₀`` plus the reprojection, by banded GN (its
-    stopping tolerances ``rtol``, ``xtol`` as :func:`~mtex_jax.edit.solve_banded`'s)."""
+    """One round: the prior's quadratic at ``X₀`` plus the reprojection, by banded GN."""
     body = fr.body
     T, D = X0.shape
     dt = X0.dtype
@@ -221,8 +212,8 @@ def _solve(
         n_valid=n_valid,
         rounds=1,
         max_steps=max_steps,
-        rtol=rtol,
-        xtol=xtol,
+        rtol=1e-7,
+        xtol=1e-6,
         colouring=channel_colouring(body.feature_map, body.order),
         terms=fr.terms((~held & (jnp.arange(T) < n_valid)).astype(dt)),
         linear=grad,
@@ -285,12 +276,13 @@ def _bone_step(
     # the floor term prices the floor's height, not the body's size: on folds of the training
     # clips its per-frame pull (a lowest foot off its stance height in a step) moved the body's
     # depth by tens of centimetres through the size–depth valley (design §12.2)
-    all_terms = fr.terms(mv)
-    terms: tuple[Any, ...] = all_terms if estimate_floor else all_terms[:1]
+    terms = fr.terms(mv)
+    has_contact = estimate_floor and fr.contact is not None
+    if not has_contact:
+        terms = terms[:1]
     P0 = body.positions(X, fr.bone_scale, fr.floor)
     sws = [jnp.sqrt(t.weights(t.residual(P0))) for t in terms]
     scale_sd, bone_sd = sd[0], sd[1]
-    has_contact = len(terms) > 1 and fr.contact is not None
 
     def moved(theta: Array) -> tuple[Array, Array, Array]:
         g, c, fl = theta[0], theta[1 : 1 + J], theta[1 + J]
@@ -310,7 +302,7 @@ def _bone_step(
         P = body.positions(Xm, b, f)
         parts = [(t.residual(P) * w).reshape(-1) for t, w in zip(terms, sws, strict=True)]
         if has_contact:  # its height moves with the floor
-            floor_term = all_terms[1]
+            floor_term = terms[1]
             c2 = eqx.tree_at(lambda c: c.height, floor_term, floor_term.height - fr.floor + f)
             parts[1] = (c2.residual(P) * sws[1]).reshape(-1)
         g, c = theta[0], theta[1 : 1 + J]
