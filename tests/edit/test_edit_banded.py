@@ -7,6 +7,8 @@ solver of the same objective, the motion before editing)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,7 +20,6 @@ import mtex_jax as mj
 from cpu_devices import run_with_cpu_devices
 from mtex_jax import edit as E
 from mtex_jax.edit._banded.normal import step_solve
-from mtex_jax.edit._banded.solve import PointTargets, solve_banded
 from mtex_jax.edit._fk import fk_positions
 from mtex_jax.edit._gn import join_points
 from mtex_jax.edit._jacobians import (
@@ -386,9 +387,30 @@ def _toy_problem(rng, T, D, K, spread):
     return fn, Y0, (jnp.asarray(2.0 * eye), jnp.asarray(H1), jnp.asarray(H2))
 
 
+def _toy_solve(
+    fn, Y0, bands, points, lower, lw, *, anchor=None, exact=None, tol=0.0, shifted=True, **solver
+):
+    """The toy problem's banded solve: the point targets and the lower heights (up axis 2) as
+    its terms, every channel free, nothing held."""
+    D = Y0.shape[1]
+    terms = (
+        E.HeightBounds(lower=lower, weight=jnp.asarray(lw), up=2, exact=exact, tol=tol),
+        dataclasses.replace(points, shifted=shifted),
+    )
+    pb = E.BandedProblem(
+        positions=fn,
+        Y0=Y0,
+        bands=bands,
+        anchor=jnp.ones(D) if anchor is None else anchor,
+        free_ch=jnp.ones(D),
+        terms=terms,
+    )
+    return E.solve_banded(pb, E.BandedGaussNewton(**solver))
+
+
 def _toy_points(T, F, K, rng, per_frame):
     slots = rng.integers(0, K, F)
-    return PointTargets(
+    return E.PointTargets(
         slot=jnp.asarray(np.tile(slots, T), jnp.int32),
         frame=jnp.asarray(np.repeat(np.arange(T), F), jnp.int32),
         target=jnp.asarray(0.3 * rng.standard_normal((T * F, 3))),
@@ -405,17 +427,16 @@ def test_frame_major_targets_solve_as_sparse_ones_and_join_per_frame():
     rng = np.random.default_rng(4)
     T, D, K, F = 12, 5, 3, 2
     fn, Y0, bands = _toy_problem(rng, T, D, K, 0.2)
-    args = (jnp.ones(D), jnp.ones(D), jnp.zeros(T, bool), Y0)
     lower = jnp.full((T, K), -jnp.inf)
     sparse = _toy_points(T, F, K, np.random.default_rng(9), per_frame=False)
     dense = _toy_points(T, F, K, np.random.default_rng(9), per_frame=True)
-    run = lambda p: solve_banded(fn, Y0, bands, *args, p, lower, 1.0, 2, rounds=2)
+    run = lambda p: _toy_solve(fn, Y0, bands, p, lower, 1.0, rounds=2)
     a, b = run(sparse), run(dense)
     assert int(a.steps) > 1 and bool(a.converged) and bool(b.converged)
     np.testing.assert_allclose(np.asarray(b.z), np.asarray(a.z), atol=1e-6)
     # a sparse set joined with two frame-major ones: sparse first, then per frame
     extra = _toy_points(T, 1, K, rng, per_frame=True)
-    pos = PointTargets(
+    pos = E.PointTargets(
         slot=jnp.asarray([1], jnp.int32),
         frame=jnp.asarray([5], jnp.int32),
         target=jnp.zeros((1, 3)),
@@ -430,7 +451,9 @@ def test_frame_major_targets_solve_as_sparse_ones_and_join_per_frame():
     np.testing.assert_array_equal(tg[:, :F], np.asarray(dense.target).reshape(T, F, 3))
     np.testing.assert_array_equal(tg[:, F], np.asarray(extra.target))
     # the joined set solves as the same targets all assembled one by one
-    flat = PointTargets(slot=j.slot, frame=j.frame, target=j.target, weight=j.weight, exact=j.exact)
+    flat = E.PointTargets(
+        slot=j.slot, frame=j.frame, target=j.target, weight=j.weight, exact=j.exact
+    )
     np.testing.assert_allclose(np.asarray(run(j).z), np.asarray(run(flat).z), atol=1e-6)
 
 
@@ -463,8 +486,6 @@ def test_exact_lower_rounds_meet_the_bound_as_a_constrained_solve():
     rng = np.random.default_rng(5)
     T, D, K, F = 10, 4, 3, 1
     fn, Y0, bands = _toy_problem(rng, T, D, K, 0.4)
-    anchor = jnp.ones(D)
-    args = (anchor, jnp.ones(D), jnp.zeros(T, bool), Y0)
     pts = _toy_points(T, F, K, np.random.default_rng(9), per_frame=True)
     h0 = np.asarray(fn(Y0))[..., 2]
     lower = jnp.asarray(np.where(h0 < np.median(h0), np.median(h0), -np.inf))  # half violated
@@ -472,10 +493,10 @@ def test_exact_lower_rounds_meet_the_bound_as_a_constrained_solve():
     lw = 10.0
 
     def run(**kw):
-        return solve_banded(fn, Y0, bands, *args, pts, lower, lw, 2, chord=False, **kw)
+        return _toy_solve(fn, Y0, bands, pts, lower, lw, chord=False, **kw)
 
-    rounds = dict(rounds=12, rtol=1e-12, early_rtol=1e-12, max_steps=30, exact_points=False)
-    al = run(**rounds, exact_lower=mask, lower_tol=1e-9)
+    rounds = dict(rounds=12, rtol=1e-12, early_rtol=1e-12, max_steps=30, shifted=False)
+    al = run(**rounds, exact=mask, tol=1e-9)
     pen = run(rounds=1, rtol=1e-12, max_steps=30)
     M = _dense_penta(*(np.asarray(b) for b in bands)) + np.eye(T * D)  # band + unit anchor
 
@@ -509,6 +530,6 @@ def test_exact_lower_rounds_meet_the_bound_as_a_constrained_solve():
     assert np.max(np.asarray(lower) - h_al) < 1e-7
     np.testing.assert_allclose(np.asarray(al.z).ravel(), ref.x, atol=1e-5)
     # bounds met to lower_tol after the first round: no further round (the penalty's solve)
-    met = run(**rounds, exact_lower=mask, lower_tol=1.0)
+    met = run(**rounds, exact=mask, tol=1.0)
     assert int(met.steps) == int(pen.steps)
     np.testing.assert_array_equal(np.asarray(met.z), np.asarray(pen.z))

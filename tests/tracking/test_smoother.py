@@ -21,6 +21,7 @@ from mtex_jax.edit import WhitenedTextons, prior_residuals
 from mtex_jax.edit._banded.terms import residual_rows
 from mtex_jax.edit._prior import _REL_FLOOR  # the whitening's ridge, re-derived below
 from mtex_jax.io import load_salsa
+from mtex_jax.motion import ground_axes
 from mtex_jax.tracking import (
     Camera,
     Gaussian,
@@ -243,6 +244,84 @@ def test_bone_lengths_recovered_on_a_scaled_skeleton(texture, clip):
     assert worst < 0.01, f"a bone {1000 * worst:.1f} mm off"
 
 
+def test_the_floor_settles_the_body_size(texture, clip):
+    """A person 5 % larger than the model, noise-free pixels: the model-sized body 5 % nearer
+    along every camera ray projects exactly alike, so the bone step started there with the
+    pixels alone stays at the model's size; with the feet on the floor (the camera's height
+    known) it finds the person's size (design §12.2, "Size and depth")."""
+    fm = texture.feature_map
+    sk = fm.skeleton
+    prob = make_problem(
+        jax.random.key(5),
+        texture,
+        clip,
+        n_frames=40,
+        start=30,
+        pixel_noise=0.0,
+        bone_scale=np.full(sk.n_joints, 1.05),
+    )
+    body, X = _truth_X(texture, clip, prob)
+    up, h0, h1 = ground_axes(sk.up_axis)
+    c0, c1, _ = body.root_cols
+    sc = float(np.asarray(fm.scale)[np.asarray(fm.active)][2])
+    off = float(np.asarray(fm.offset)[np.asarray(fm.active)][2])
+    truth = np.asarray(prob.truth)
+    lift = float(np.median(truth[:, 0, up] - np.asarray(body.observed(X))[:, 0, up]))
+    X = X.at[:, 2].add(lift / sc)
+    # the model-sized body that projects alike: every root 1/1.05 of the way along its ray
+    cam = prob.camera
+    centre = -np.asarray(cam.rotation).T @ np.asarray(cam.translation)
+    k = 1 / 1.05
+    X = X.at[:, c0].set(centre[h0] + k * (X[:, c0] - centre[h0]))
+    X = X.at[:, c1].set(centre[h1] + k * (X[:, c1] - centre[h1]))
+    u = centre[up] + k * (X[:, 2] * sc + off - centre[up])
+    X = X.at[:, 2].set((u - off) / sc)
+    px = np.asarray(jax.vmap(cam.project)(body.observed(X)))
+    gap = np.linalg.norm(px - np.asarray(prob.observations), axis=-1)
+    assert np.median(gap) < 1.0, f"the start does not project alike: {np.median(gap):.2f} px"
+    used = np.asarray(body.order)
+    sizes = {}
+    for floor in (False, True):
+        fr = _frame(texture, body, prob, 1.0, Gaussian(), prob.n_frames, floor_contact=floor)
+        Xe = X
+        for _ in range(2):
+            sd = jnp.asarray([0.05, 0.05])
+            fr, Xe = _bone_step(fr, Xe, jnp.ones((prob.n_frames,), bool), sd, False)
+        sizes[floor] = float(np.mean(np.log(np.asarray(fr.bone_scale)[used])))
+    print(f"\nsize {np.log(1.05):+.3f}: pixels {sizes[False]:+.3f}, floor {sizes[True]:+.3f}")
+    assert abs(sizes[False]) < 0.01  # the pixels alone cannot move it
+    assert abs(sizes[True] - np.log(1.05)) < 0.02  # measured +0.063: 60_12's ankles stand high
+
+
+def test_fixed_lag_estimates_the_bones_after_a_known_window(texture, clip):
+    """With a known initial window and ``bones=True`` the fixed-lag smoother estimates the
+    person's bones (from the batch solve of its first ``bone_window`` seconds) and keeps them:
+    on a skeleton scaled 0.9-1.1 per bone its bone lengths are nearer the truth than the
+    model's, and the frames after the window are tracked with them."""
+    prob = make_problem(
+        jax.random.key(5), texture, clip, n_frames=45, start=30, bone_scale=(0.9, 1.1)
+    )
+    assert prob.has_init
+    r = track(jax.random.key(0), texture, prob, MapSmoother(lag=6, bones=True, bone_window=1.0))
+    assert r.bone_scale is not None
+    est = np.asarray(r.bone_scale)
+    sk = texture.feature_map.skeleton
+    bs = np.asarray(
+        jax.random.uniform(
+            jax.random.fold_in(jax.random.key(5), 1), (sk.n_joints,), minval=0.9, maxval=1.1
+        )
+    )
+    length = np.linalg.norm(np.asarray(sk.offsets), axis=1)
+    observed = set(prob.joints)
+    bones = [j for j in prob.joints if sk.parents[j] in observed and length[j] > 0.05]
+    err_est = np.mean([abs(length[j] * (est[j] - bs[j])) for j in bones])
+    err_model = np.mean([abs(length[j] * (1.0 - bs[j])) for j in bones])
+    print(f"\nmean bone error: estimated {1000 * err_est:.1f} mm, model {1000 * err_model:.1f} mm")
+    assert np.ptp(est[bones]) > 0.01  # estimated, not the model's
+    assert err_est < 0.8 * err_model
+    assert np.all(np.isfinite(np.asarray(r.mean_joints)))
+
+
 def test_track_with_the_texture_beats_a_smoothness_prior(texture, problem):
     """The small version of bench_tracking: the texture's MAP on 40 held-out frames is within
     80 mm and better than the same smoother with a smoothness-only prior; the fixed-lag
@@ -329,7 +408,13 @@ def test_bad_input_is_refused(texture, problem):
     conf[0, 0] = 1.5
     with pytest.raises(ValueError, match="confidences"):
         track(key, texture, eqx.tree_at(lambda p: p.confidence, problem, conf))
-    for bad in (dict(lag=0), dict(rounds=0), dict(root_accel=-1.0), dict(floor="guess")):
+    for bad in (
+        dict(lag=0),
+        dict(rounds=0),
+        dict(root_accel=-1.0),
+        dict(floor="guess"),
+        dict(bone_window=-1.0),
+    ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             MapSmoother(**bad)
     with pytest.raises(ValueError, match="nu"):

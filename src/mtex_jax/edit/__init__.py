@@ -14,11 +14,20 @@ from ._api import (
     segments_of as segments_of,
 )
 from ._banded.solve import (
+    BandedGaussNewton as BandedGaussNewton,
+    BandedProblem as BandedProblem,
     BandedSolve as BandedSolve,
-    PointTargets as PointTargets,
     solve_banded as solve_banded,
 )
-from ._banded.terms import FrameResidual as FrameResidual
+from ._banded.terms import (
+    Columns as Columns,
+    FrameResidual as FrameResidual,
+    HeightBounds as HeightBounds,
+    PointTargets as PointTargets,
+    ResidualTerm as ResidualTerm,
+    RootOffset as RootOffset,
+    Rows as Rows,
+)
 from ._clean import (
     CleanResult as CleanResult,
     clean as clean,
@@ -46,14 +55,21 @@ from ._solve import EditResult as EditResult, solve_edit as solve_edit
 from ._synth import synthesize as synthesize
 
 __all__ = [
+    "BandedGaussNewton",
+    "BandedProblem",
     "BandedSolve",
     "CleanResult",
+    "Columns",
     "Constraints",
     "EditResult",
     "EditWeights",
     "FrameResidual",
     "FrameSegments",
+    "HeightBounds",
     "PointTargets",
+    "ResidualTerm",
+    "RootOffset",
+    "Rows",
     "WhitenedTextons",
     "channel_colouring",
     "clean",

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..core import as_array, cut_frames, pad_frames
 from ..motion import FeatureMap
-from ._banded.solve import PointTargets
+from ._banded.terms import PointTargets
 from ._constraints import Constraints, EditWeights
 from ._gn import solve_edit_gn_jit
 from ._prior import FrameSegments, WhitenedTextons
@@ -96,7 +96,7 @@ def pad_inputs(
 
 def pad_points(points: PointTargets, T: int, n: int) -> PointTargets:
     """Point targets of a ``T``-frame edit padded to ``n`` frames: the sparse targets kept,
-    the frame-major ones (:class:`~mtex_jax.edit._banded.solve.PointTargets`) given weightless
+    the frame-major ones (:class:`~mtex_jax.edit._banded.terms.PointTargets`) given weightless
     targets at each padding frame (same joints), so they stay frame-major."""
     F, s = points.per_frame, points.sparse_count
     if not F:

@@ -32,7 +32,7 @@ from ._api import (
     observations_of,
     segments_of,
 )
-from ._banded.solve import PointTargets
+from ._banded.terms import PointTargets
 from ._bucket import solve_gn_bucketed
 from ._constraints import EditWeights, make_constraints
 from ._prior import WhitenedTextons

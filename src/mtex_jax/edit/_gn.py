@@ -16,6 +16,7 @@ Velocity targets couple two frames; edits with velocity targets use Levenberg–
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import equinox as eqx
@@ -24,7 +25,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..motion import FeatureMap, ground_axes, quat_conj, quat_rotate, yaw_quat
-from ._banded.solve import PointTargets, solve_banded
+from ._banded.solve import BandedGaussNewton, BandedProblem, solve_banded
+from ._banded.terms import HeightBounds, PointTargets, RootOffset
 from ._constraints import Constraints, EditWeights
 from ._jacobians import channel_colouring, kept_positions, root_free_channels
 from ._prior import FrameSegments, WhitenedTextons, prior_hessian, smoothness_hessian
@@ -156,16 +158,18 @@ def solve_edit_gn(
             (:func:`~mtex_jax.edit._bucket.solve_gn_bucketed`: the padding frames are held by
             ``cons.pose_mask``, and have no prior, smoothness or floor terms); ``None``: all.
         move_root: let the root's horizontal trajectory change too, as a smooth world offset
-            per frame (:func:`~mtex_jax.edit._banded.solve.solve_banded`); the root channels and the
+            per frame (:class:`~mtex_jax.edit.RootOffset`); the root channels and the
             start position of the result are re-derived from it (``result.start_position``).
         root_smooth: per metre of the offset's second difference (with ``move_root``).
         rounds: multiplier rounds; max_steps: Gauss–Newton steps per round.
-        rtol, early_rtol, xtol: stopping tests of :func:`~mtex_jax.edit._banded.solve.solve_banded`.
+        rtol, early_rtol, xtol: stopping tests of :class:`~mtex_jax.edit.BandedGaussNewton`
+            (``xtol`` is its ``atol``).
         exact_lower, exact_points, lower_tol: which constraints the multiplier rounds meet
             exactly (the floor and lift bounds; the exact point targets), and the tolerance of
-            the floor that ends the rounds (:func:`~mtex_jax.edit._banded.solve.solve_banded`).
+            the floor that ends the rounds (:class:`~mtex_jax.edit.HeightBounds`,
+            :class:`~mtex_jax.edit.PointTargets`).
         chord: reuse factorisations between steps
-            (:func:`~mtex_jax.edit._banded.solve.solve_banded`).
+            (:class:`~mtex_jax.edit.BandedGaussNewton`).
 
     Returns:
         :class:`EditResult` (``u`` holds the displacement ``Y − Y₀``).
@@ -202,32 +206,36 @@ def solve_edit_gn(
     lower = jnp.where((jnp.arange(T) < prob.n_valid)[:, None], lower, -jnp.inf)
     floor_bounds = (lower == cons.floor.astype(lower.dtype)) & cons.floor_on  # not a lift
     roots = root_channels(fm) if move_root else None
-    sol = solve_banded(
-        fn,
-        Y0,
-        bands,
-        anchor,
-        free_ch,
-        cons.pose_mask,
-        cons.poses.astype(dt),
-        points,
-        lower,
-        w.floor,
-        fm.skeleton.up_axis,
-        move_root=roots,
-        root_smooth=root_smooth,
-        n_valid=prob.n_valid,
+    bounds = HeightBounds(
+        lower=lower,
+        weight=jnp.asarray(w.floor, dt),
+        up=fm.skeleton.up_axis,
+        exact=floor_bounds if exact_lower else None,
+        tol=lower_tol,
+    )
+    points = dataclasses.replace(points, shifted=exact_points)
+    root = None if roots is None else RootOffset(roots[0], roots[1], root_smooth, prob.n_valid)
+    banded = BandedProblem(
+        positions=fn,
+        Y0=Y0,
+        bands=bands,
+        anchor=anchor,
+        free_ch=free_ch,
+        terms=(bounds, points),
+        held=cons.pose_mask,
+        poses=cons.poses.astype(dt),
+        root=root,
+        colouring=channel_colouring(fm, prob.keep),
+    )
+    solver = BandedGaussNewton(
+        rtol=rtol,
+        atol=xtol,
         rounds=rounds,
         max_steps=max_steps,
-        rtol=rtol,
         early_rtol=early_rtol,
-        exact_lower=floor_bounds if exact_lower else None,
-        exact_points=exact_points,
-        lower_tol=lower_tol,
-        xtol=xtol,
-        colouring=channel_colouring(fm, prob.keep),
         chord=chord,
     )
+    sol = solve_banded(banded, solver)
     z, sp = sol.z, prob.sp
     Y = jnp.where(cons.pose_mask[:, None], cons.poses.astype(dt), Y0 + z * free_ch)
     if roots is not None:

@@ -6,10 +6,14 @@
 - the trackers, chosen by passing one to :func:`track`: :class:`ParticleFilter` (the implicit
   model's prior, IP §3 and §6) and :class:`MapSmoother` (the texture's prior, a banded
   Gauss–Newton MAP estimate, batch or fixed-lag);
+- the smoother's residual terms, members of :class:`~mtex_jax.edit.ResidualTerm` that a banded
+  solve of one's own can take: :class:`Reprojection` (robust, with a :class:`PixelLoss`) and
+  :class:`FloorContact`;
 - the results: :class:`TrackResult` and the error measures (:func:`joint_errors`).
 """
 
 from ._camera import Camera as Camera
+from ._floor import FloorContact as FloorContact
 from ._keypoints import (
     COCO17_NAMES as COCO17_NAMES,
     Keypoints as Keypoints,
@@ -39,6 +43,7 @@ from ._reprojection import (
     Gaussian as Gaussian,
     Huber as Huber,
     PixelLoss as PixelLoss,
+    Reprojection as Reprojection,
     StudentT as StudentT,
 )
 from ._result import (
@@ -53,6 +58,7 @@ from ._tracker import Tracker as Tracker
 __all__ = [
     "COCO17_NAMES",
     "Camera",
+    "FloorContact",
     "Gaussian",
     "Huber",
     "Keypoints",
@@ -60,6 +66,7 @@ __all__ = [
     "MotionPrior",
     "ParticleFilter",
     "PixelLoss",
+    "Reprojection",
     "SmoothPrior",
     "StudentT",
     "TexturePrior",

@@ -1,6 +1,6 @@
 """The normal equations of a banded Gauss–Newton step: factor and solve, one frame per block.
 
-:func:`~mtex_jax.edit._banded.solve.solve_banded` forms, at each fresh step, the prior's band plus
+:class:`~mtex_jax.edit.BandedGaussNewton` forms, at each fresh step, the prior's band plus
 the constraints' block-diagonal Gauss–Newton terms; this module factorises that matrix with
 :func:`~mtex_jax.linalg.block_penta_factor` (single precision for a double-precision problem,
 with a fallback) and solves for the step, under ``vmap`` one motion after the other.
@@ -16,10 +16,10 @@ from jaxtyping import Array
 from ...linalg import BlockPentaCholesky, block_penta_factor, block_penta_solve, sym
 from .._whiten import band_matvec
 
-__all__ = ["factor_dtype", "normal_solve", "step_solve"]
+__all__ = ["factor_dtype", "no_factor", "normal_solve", "step_solve"]
 
 
-def _no_factor(T: int, D: int, dt) -> BlockPentaCholesky:
+def no_factor(T: int, D: int, dt) -> BlockPentaCholesky:
     """A zero factor (a skipped factorisation) of a problem in precision ``dt``."""
     z = jnp.zeros((T, D, D), factor_dtype(dt))
     return BlockPentaCholesky(
@@ -118,7 +118,7 @@ def _normal_solve_vmap(axis_size: int, in_batched, *args):
         T, D = a[-1].shape
         skip = lambda *_: (
             jnp.zeros_like(a[-1]),
-            _no_factor(T, D, a[-1].dtype),
+            no_factor(T, D, a[-1].dtype),
             jnp.asarray(True),
         )
         return lax.cond(active, lambda *b: normal_solve(*b, active), skip, *a)
