@@ -206,6 +206,18 @@ def test_noise_free_observations_recover_the_truth(texture, clip):
     assert share >= 0.95, f"{100 * share:.1f} % of the joint-frames within 1 mm"
 
 
+def _true_bones(texture, prob, key):
+    """The per-bone scales ``make_problem(key, …, bone_scale=(0.9, 1.1))`` drew, the model's
+    bone lengths, and the bones between observed joints longer than 5 cm."""
+    sk = texture.feature_map.skeleton
+    k_bones = jax.random.fold_in(key, 1)
+    bs = np.asarray(jax.random.uniform(k_bones, (sk.n_joints,), minval=0.9, maxval=1.1))
+    length = np.linalg.norm(np.asarray(sk.offsets), axis=1)
+    observed = set(prob.joints)
+    bones = [j for j in prob.joints if sk.parents[j] in observed and length[j] > 0.05]
+    return bs, length, bones
+
+
 def test_bone_lengths_recovered_on_a_scaled_skeleton(texture, clip):
     """The bone step on a person with bones scaled 0.9-1.1 (noise-free pixels, the poses known)
     recovers the lengths of the bones between observed joints within 1 cm."""
@@ -231,14 +243,7 @@ def test_bone_lengths_recovered_on_a_scaled_skeleton(texture, clip):
     for _ in range(2):
         fr, X = _bone_step(fr, X, jnp.ones((prob.n_frames,), bool), sd, False)
     est = np.asarray(fr.bone_scale)
-    bs = np.asarray(
-        jax.random.uniform(
-            jax.random.fold_in(jax.random.key(5), 1), (sk.n_joints,), minval=0.9, maxval=1.1
-        )
-    )
-    length = np.linalg.norm(np.asarray(sk.offsets), axis=1)
-    observed = set(prob.joints)
-    bones = [j for j in prob.joints if sk.parents[j] in observed and length[j] > 0.05]
+    bs, length, bones = _true_bones(texture, prob, jax.random.key(5))
     assert len(bones) >= 8
     worst = max(abs(length[j] * (est[j] - bs[j])) for j in bones)
     assert worst < 0.01, f"a bone {1000 * worst:.1f} mm off"
@@ -305,15 +310,7 @@ def test_fixed_lag_estimates_the_bones_after_a_known_window(texture, clip):
     r = track(jax.random.key(0), texture, prob, MapSmoother(lag=6, bones=True, bone_window=1.0))
     assert r.bone_scale is not None
     est = np.asarray(r.bone_scale)
-    sk = texture.feature_map.skeleton
-    bs = np.asarray(
-        jax.random.uniform(
-            jax.random.fold_in(jax.random.key(5), 1), (sk.n_joints,), minval=0.9, maxval=1.1
-        )
-    )
-    length = np.linalg.norm(np.asarray(sk.offsets), axis=1)
-    observed = set(prob.joints)
-    bones = [j for j in prob.joints if sk.parents[j] in observed and length[j] > 0.05]
+    bs, length, bones = _true_bones(texture, prob, jax.random.key(5))
     err_est = np.mean([abs(length[j] * (est[j] - bs[j])) for j in bones])
     err_model = np.mean([abs(length[j] * (1.0 - bs[j])) for j in bones])
     print(f"\nmean bone error: estimated {1000 * err_est:.1f} mm, model {1000 * err_model:.1f} mm")
