@@ -300,11 +300,12 @@ def _bone_step(
     def residuals(theta: Array, _args: Any) -> Array:
         Xm, b, f = moved(theta)
         P = body.positions(Xm, b, f)
-        parts = [(t.residual(P) * w).reshape(-1) for t, w in zip(terms, sws, strict=True)]
-        if has_contact:  # its height moves with the floor
+        now = terms
+        if has_contact:  # the feet's height moves with the floor
             floor_term = terms[1]
-            c2 = eqx.tree_at(lambda c: c.height, floor_term, floor_term.height - fr.floor + f)
-            parts[1] = (c2.residual(P) * sws[1]).reshape(-1)
+            height = floor_term.height - fr.floor + f
+            now = (terms[0], eqx.tree_at(lambda c: c.height, floor_term, height))
+        parts = [(t.residual(P) * w).reshape(-1) for t, w in zip(now, sws, strict=True)]
         g, c = theta[0], theta[1 : 1 + J]
         return jnp.concatenate([*parts, (g / scale_sd)[None], c / bone_sd])
 

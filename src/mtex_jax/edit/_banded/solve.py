@@ -47,6 +47,7 @@ traced, so the solve batches with ``vmap``.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -361,36 +362,20 @@ class BandedGaussNewton(optx.AbstractMinimiser):
         same = lambda: (s.shifts, c_new, jnp.asarray(False))
         shifts, c_next, met = lax.cond(new_round, next_round, same)
         last, new_round = last | met, new_round & ~met
-        return eqx.tree_at(
-            lambda t: (
-                t.z,
-                t.shifts,
-                t.cost,
-                t.round,
-                t.k,
-                t.steps,
-                t.converged,
-                t.finished,
-                t.fresh,
-                t.ok,
-                t.g,
-                t.g_ok,
-            ),
+        return dataclasses.replace(
             s,
-            (
-                z_new,
-                shifts,
-                c_next,
-                s.round + new_round.astype(jnp.int32),
-                jnp.where(end, 0, k),
-                s.steps + 1,
-                jnp.where(end, done, s.converged),
-                last,
-                ~end & poor,  # a round starts with a chord step (as it ends)
-                s.ok & fac_ok,
-                g_new,
-                g_ok & ~new_round,  # a new round's shift changes the gradient
-            ),
+            z=z_new,
+            shifts=shifts,
+            cost=c_next,
+            round=s.round + new_round.astype(jnp.int32),
+            k=jnp.where(end, 0, k),
+            steps=s.steps + 1,
+            converged=jnp.where(end, done, s.converged),
+            finished=last,
+            fresh=~end & poor,  # a round starts with a chord step (as it ends)
+            ok=s.ok & fac_ok,
+            g=g_new,
+            g_ok=g_ok & ~new_round,  # a new round's shift changes the gradient
         )
 
     def step(self, fn, y, args, options, state, tags):

@@ -92,8 +92,8 @@ class Columns(eqx.Module):
         """The Jacobians of the positions of joints ``slot`` at frames ``frame``."""
         J = self.fc.rows(frame, slot)
         if self.root is not None:
-            (c0, c1), (h0, h1) = self.root.channels, self.root.axes
-            J = J.at[:, h0, c0].set(1.0).at[:, h1, c1].set(1.0)
+            for a, c in zip(self.root.axes, self.root.channels, strict=True):
+                J = J.at[:, a, c].set(1.0)
         return J
 
     def axis(self, a: int) -> Float[Array, "T K D"]:
