@@ -39,7 +39,8 @@ REPORTS: dict[str, tuple[str, str]] = {
         "Tracking: 3-D motion from 2-D joints",
         "Monocular tracking of the 4 held-out salsa clips (150 frames at 30 Hz, 17 joints, "
         "synthetic 2 px observations; hard: 10 % missing joints, 5 % outliers, bones scaled "
-        "by 0.9-1.1) with the texture's MAP smoother (batch and fixed-lag), the implicit "
+        "by 0.9-1.1; and the hard problems with the person's skeleton given) with the "
+        "texture's MAP smoother (batch and fixed-lag), the implicit "
         "model's particle filter (bootstrap and Gauss-Newton proposals), a constant-velocity "
         "filter and a smoothness-only MAP (design §12).",
     ),

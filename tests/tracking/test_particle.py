@@ -354,3 +354,31 @@ def test_cli_track(tmp_path, capsys):
     assert "particles" in capsys.readouterr().err
     assert main(["track", "example:walk", "--test", "example:run", "--frames", "500"]) == 2
     assert "n_frames" in capsys.readouterr().err
+
+
+def test_the_filter_tracks_with_a_given_skeleton(model, salsa30):
+    """With the person's skeleton given (``known_bones=True``) the filter's particles carry
+    its bones: in the mean joints, each long bone between two observed joints is longer or
+    shorter than in the same run with the model's skeleton by the given change (within 30 %:
+    the particles' mean shortens a bone whose particles bend differently, in both runs)."""
+    key = jax.random.PRNGKey(7)
+    kw = dict(n_frames=20, start=30, bone_scale=(0.9, 1.1))
+    given = make_problem(key, model, salsa30[HELD_OUT], known_bones=True, **kw)
+    unknown = make_problem(key, model, salsa30[HELD_OUT], **kw)
+    pf = ParticleFilter(n_particles=64)
+    P_g = np.asarray(mj.track(jax.random.PRNGKey(1), model, given, pf).mean_joints)
+    P_u = np.asarray(mj.track(jax.random.PRNGKey(1), model, unknown, pf).mean_joints)
+    sk = model.feature_map.skeleton
+    bs = np.asarray(given.bone_scale)
+    length = np.linalg.norm(np.asarray(sk.offsets), axis=1)
+    ix = given.joints.index
+    checked = 0
+    for j in given.joints:
+        p = sk.parents[j]
+        if p not in given.joints or length[j] < 0.15 or abs(bs[j] - 1) < 0.03:
+            continue
+        g, u = (np.median(np.linalg.norm(P[:, ix(j)] - P[:, ix(p)], axis=-1)) for P in (P_g, P_u))
+        change, expected = g - u, length[j] * (bs[j] - 1)
+        assert abs(change - expected) < 0.3 * abs(expected), (sk.names[j], change, expected)
+        checked += 1
+    assert checked >= 2

@@ -516,3 +516,43 @@ def test_float32_tracks_a_whole_clip(texture, clip):
         assert np.all(np.isfinite(err))
         assert err.mean() < 0.06, f"lag={method.lag}: mean error {1000 * err.mean():.1f} mm"
         assert err.max() < 0.3, f"lag={method.lag}: worst frame {1000 * err.max():.1f} mm"
+
+
+def test_a_given_skeleton_is_kept(texture, clip):
+    """A person's skeleton given with the problem (``known_bones=True``: measured beforehand) is
+    the one ``make_problem`` drew, and the smoother tracks with it: every tracked bone between
+    two observed joints has the given length at every frame, and the track is nearer the
+    truth than the same problem tracked with the model's skeleton."""
+    key = jax.random.key(5)
+    kw = dict(n_frames=30, start=30, bone_scale=(0.9, 1.1))
+    given = make_problem(key, texture, clip, known_bones=True, **kw)
+    unknown = make_problem(key, texture, clip, **kw)
+    assert unknown.bone_scale is None
+    bs, length, bones = _true_bones(texture, given, key)
+    np.testing.assert_allclose(np.asarray(given.bone_scale), bs, rtol=1e-12)
+    np.testing.assert_array_equal(np.asarray(given.observations), np.asarray(unknown.observations))
+    r_g = track(jax.random.key(0), texture, given, MapSmoother())
+    r_u = track(jax.random.key(0), texture, unknown, MapSmoother())
+    np.testing.assert_allclose(np.asarray(r_g.bone_scale), bs, rtol=1e-12)
+    assert r_u.bone_scale is None
+    P = np.asarray(r_g.mean_joints)
+    sk = texture.feature_map.skeleton
+    for j in bones:
+        k, kp = given.joints.index(j), given.joints.index(sk.parents[j])
+        got = np.linalg.norm(P[:, k] - P[:, kp], axis=-1)
+        np.testing.assert_allclose(got, length[j] * bs[j], rtol=1e-9)
+    e_g, e_u = r_g.mean_error, r_u.mean_error
+    print(f"\nglobal error: skeleton given {1000 * e_g:.1f} mm, model's {1000 * e_u:.1f} mm")
+    assert e_g < e_u
+
+
+def test_a_given_skeleton_is_checked(texture, clip, problem):
+    """A given skeleton of the wrong length or with a non-positive bone is refused by name."""
+    J = texture.feature_map.skeleton.n_joints
+    bad_len = dataclasses.replace(problem, bone_scale=jnp.ones(J - 1))
+    with pytest.raises(ValueError, match="bone_scale has shape"):
+        track(jax.random.key(0), texture, bad_len, MapSmoother())
+    with pytest.raises(ValueError, match="bone_scale must be positive"):
+        dataclasses.replace(problem, bone_scale=jnp.zeros(J))
+    with pytest.raises(TypeError, match="known_bones must be a bool"):
+        make_problem(jax.random.key(0), texture, clip, n_frames=5, known_bones=1)

@@ -386,6 +386,12 @@ def _track_impl(
         psi = jnp.concatenate([pose, pose - last], axis=-1)
         win = jnp.concatenate([win[:, 1:], psi[:, None]], axis=1)
         pos, head, rot, lp = dec(pose, pos, head)
+        if problem.bone_scale is not None:  # the person's bones, given
+            b = problem.bone_scale.astype(dt)[None, :, None]
+            if lp is None:
+                off = jnp.asarray(fm.skeleton.offsets_array, dt)
+                lp = jnp.broadcast_to(off, (n, *off.shape))
+            lp = lp * b
         x = forward_kinematics_arrays(fm.skeleton, pos, rot, lp)[:, jidx]  # (N, K, 3)
         e_move = jax.random.normal(jax.random.fold_in(k_noise, 1), (n, q), dt)
         th = None  # the root's rigid move (module notes)
@@ -429,6 +435,7 @@ class _Inputs(eqx.Module):
     init_heading: Float[Array, ""]
     observations: Float[Array, "T K 2"]
     confidence: Float[Array, "T K"]
+    bone_scale: Float[Array, " J"] | None = None
 
 
 def run_particle_filter(
@@ -462,6 +469,7 @@ def run_particle_filter(
         init_heading=jnp.asarray(problem.init_heading),
         observations=pad_frames(obs, n_pad, axis=0),
         confidence=pad_frames(conf, n_pad, axis=0),
+        bone_scale=problem.bone_scale,
     )
     out = _track_jit(
         model.database,

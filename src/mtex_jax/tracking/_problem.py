@@ -56,6 +56,11 @@ class TrackingProblem(eqx.Module):
             ``None``.
         init_heading: its root yaw, or ``None``.
         truth: ``(T, K, 3)`` true world joint positions, or ``None`` (real keypoints).
+        bone_scale: ``(J,)`` the tracked person's bones when they are known (a measured
+            skeleton: each joint's offset from its parent is the model skeleton's times
+            ``bone_scale[j]``, :func:`scaled_skeleton`), or ``None``: the trackers use the
+            model's skeleton, and a :class:`MapSmoother` with ``bones=True`` estimates them,
+            from a prior centred on these when given (design §12.2).
     """
 
     joints: tuple[int, ...] = eqx.field(static=True)
@@ -68,6 +73,7 @@ class TrackingProblem(eqx.Module):
     init_position: Float[Array, " 3"] | None = None
     init_heading: Float[Array, ""] | None = None
     truth: Float[Array, "T K 3"] | None = None
+    bone_scale: Float[Array, " J"] | None = None
 
     def __check_init__(self) -> None:
         T, K = len(self.frames), len(self.joints)
@@ -83,6 +89,15 @@ class TrackingProblem(eqx.Module):
             )
         if self.truth is not None and np.shape(self.truth) != (T, K, 3):
             raise ValueError(f"TrackingProblem: truth must have shape ({T}, {K}, 3)")
+        if self.bone_scale is not None:
+            b = np.asarray(self.bone_scale)
+            if b.ndim != 1 or not b.size:
+                raise ValueError(
+                    f"TrackingProblem: bone_scale must be one factor per skeleton joint (J,), "
+                    f"got shape {b.shape}"
+                )
+            if not (np.all(np.isfinite(b)) and np.all(b > 0)):
+                raise ValueError("TrackingProblem: bone_scale must be positive and finite")
         known = [x is not None for x in (self.init_window, self.init_position, self.init_heading)]
         if any(known) and not all(known):
             raise ValueError(
@@ -162,6 +177,7 @@ def make_problem(
     outliers: float = 0.0,
     outlier_pixels: tuple[float, float] = (50.0, 200.0),
     bone_scale: tuple[float, float] | Float[Any, " J"] | None = None,
+    known_bones: bool = False,
 ) -> TrackingProblem:
     """Synthetic monocular observations of a (held-out) clip (design §12.1).
 
@@ -189,6 +205,8 @@ def make_problem(
             skeleton's own bones. The truth and the observations follow the scaled body, its
             root lifted so that its feet stand on the same floor; the initial window is the
             same clip's (rotations do not depend on bone lengths).
+        known_bones: give the trackers the person's bones (the problem's ``bone_scale``: a
+            skeleton measured beforehand); ``False``: they are unknown to the trackers.
 
     Raises:
         ValueError: clip too short, bad arguments, non-finite values.
@@ -227,8 +245,11 @@ def make_problem(
     else:
         init = np.asarray(fm.encode(clip))[1 : d + 1]
         dt = jnp.asarray(prior.textons.mu).dtype
+    if not isinstance(known_bones, bool):
+        raise TypeError(f"make_problem: known_bones must be a bool, got {known_bones!r}")
     k_bones, k_miss, k_out, k_dir, k_len = (jax.random.fold_in(key, i) for i in range(1, 6))
     body = clip
+    given = None
     if bone_scale is not None:
         bs = np.asarray(bone_scale, dtype=np.float64)
         if bs.shape == (2,) and sk.n_joints != 2:
@@ -237,6 +258,7 @@ def make_problem(
                 raise ValueError("make_problem: bone_scale range must be 0 < low ≤ high")
             bs = np.asarray(jax.random.uniform(k_bones, (sk.n_joints,), minval=lo, maxval=hi))
         body = dataclasses.replace(clip, skeleton=scaled_skeleton(sk, bs))
+        given = bs if known_bones else None
         if clip.local_positions is not None:
             lp = np.asarray(clip.local_positions) * np.asarray(bs)[None, :, None]
             body = dataclasses.replace(body, local_positions=jnp.asarray(lp))
@@ -281,4 +303,5 @@ def make_problem(
         init_position=jnp.asarray(root[d], dt),
         init_heading=jnp.asarray(heading, dt),
         truth=jnp.asarray(truth, dt),
+        bone_scale=None if given is None else jnp.asarray(given, dt),
     )

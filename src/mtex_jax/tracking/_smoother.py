@@ -177,6 +177,8 @@ class _Frame(eqx.Module):
     floor: Float[Array, ""]
     contact: FloorContact | None
     fps: float = eqx.field(static=True)
+    #: the log of the bones' prior centre (a given skeleton's scales; ``None``: the model's)
+    bone_centre: Float[Array, " J"] | None = None
 
     def terms(self, valid: Array) -> tuple[Any, ...]:
         """The residual terms: the reprojection and, where the texture knows its floor, the
@@ -283,6 +285,7 @@ def _bone_step(
     P0 = body.positions(X, fr.bone_scale, fr.floor)
     sws = [jnp.sqrt(t.weights(t.residual(P0))) for t in terms]
     scale_sd, bone_sd = sd[0], sd[1]
+    log_centre = 0.0 if fr.bone_centre is None else fr.bone_centre
 
     def moved(theta: Array) -> tuple[Array, Array, Array]:
         g, c, fl = theta[0], theta[1 : 1 + J], theta[1 + J]
@@ -307,7 +310,7 @@ def _bone_step(
             now = (terms[0], eqx.tree_at(lambda c: c.height, floor_term, height))
         parts = [(t.residual(P) * w).reshape(-1) for t, w in zip(now, sws, strict=True)]
         g, c = theta[0], theta[1 : 1 + J]
-        return jnp.concatenate([*parts, (g / scale_sd)[None], c / bone_sd])
+        return jnp.concatenate([*parts, (g / scale_sd)[None], (c - log_centre) / bone_sd])
 
     theta0 = jnp.concatenate([jnp.zeros((1,), dt), log_b0, fr.floor[None]])
     sol = optx.least_squares(
@@ -403,6 +406,7 @@ def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackR
         fps=fps,
         n_headings=opts.n_headings,
         floor_known=known_floor,
+        bone_scale=None if problem.bone_scale is None else jnp.asarray(problem.bone_scale, dt),
     )
     X_start = X_start[:T]
     n_init = 0
@@ -440,7 +444,7 @@ def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackR
     errs: tuple[Any, ...] = (None, None, None)
     if problem.truth is not None:
         errs = joint_errors(P, np.asarray(problem.truth))
-    bones = np.asarray(fr.bone_scale) if opts.bones else None
+    bones = np.asarray(fr.bone_scale) if opts.bones or problem.bone_scale is not None else None
     put = lambda a: None if a is None else as_array(np.asarray(a).astype(dt))
     return TrackResult(
         prior="texture" if isinstance(opts.prior, TexturePrior) else "smooth",
@@ -494,6 +498,10 @@ def _frame_inputs(
     o = np.zeros((T_pad, K, 2))
     c = np.zeros((T_pad, K))
     o[n_init : n_init + T], c[n_init : n_init + T] = obs, conf
+    J = body.feature_map.skeleton.n_joints
+    given = (
+        jnp.ones((J,), dt) if problem.bone_scale is None else jnp.asarray(problem.bone_scale, dt)
+    )
     rep = Reprojection(
         camera=problem.camera,
         slots=body.slots,
@@ -506,7 +514,8 @@ def _frame_inputs(
         tx=tx,
         reproj=rep,
         root_w=root_w,
-        bone_scale=jnp.ones((body.feature_map.skeleton.n_joints,), dt),
+        bone_scale=given,
+        bone_centre=None if problem.bone_scale is None else jnp.log(given),
         floor=jnp.asarray(floor, dt),
         contact=contact,
         fps=fps,

@@ -35,6 +35,7 @@ def _translations(
     loss: PixelLoss,
     n_headings: int,
     up_sd: Array,
+    bone_scale: Array | None = None,
     steps: int = 10,
 ) -> tuple[Array, Array]:
     """``(p (T, H, 3), cost (T, H))``: the best root translation and its cost per frame and
@@ -47,7 +48,7 @@ def _translations(
     Xh = jnp.broadcast_to(X_pose, (n_headings, D)).at[:, cy].set(theta)
     c0, c1, _ = body.root_cols
     Xh = Xh.at[:, c0].set(0.0).at[:, c1].set(0.0)
-    poses = body.observed(Xh)  # (H, K, 3)
+    poses = body.observed(Xh, bone_scale)  # (H, K, 3)
     R = camera.rotation.astype(dt)
     centre = -R.T @ camera.translation.astype(dt)
     f = camera.focal.astype(dt)
@@ -128,6 +129,7 @@ def rigid_start(
     n_headings: int = 16,
     floor_known: bool = True,
     turn_rate: float = 6.0,
+    bone_scale: Float[Array, " J"] | None = None,
 ) -> tuple[np.ndarray, float]:
     """The first estimate ``X (T, D)`` and the floor height (module notes).
 
@@ -143,6 +145,7 @@ def rigid_start(
             prior around the mean pose's, ``0.15`` m); otherwise the root's height is free and
             the floor is estimated as the median lift.
         turn_rate: standard deviation of the heading's rate of change, radians per second.
+        bone_scale: the person's bones (``None``: the skeleton's).
 
     Returns:
         ``(X, floor)``.
@@ -162,6 +165,7 @@ def rigid_start(
         loss,
         n_headings,
         up_sd,
+        bone_scale,
     )
     p, cost = np.asarray(p), np.asarray(cost)
     seen = np.asarray(conf).sum(axis=1) > 0

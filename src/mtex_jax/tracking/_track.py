@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from jaxtyping import PRNGKeyArray
 
 from ..core import check_key
 from ..implicit import ImplicitModel
 from ..texture import MotionTexture
 from ._particle import ParticleFilter
-from ._problem import TrackingProblem
+from ._problem import TrackingProblem, feature_map_of
 from ._result import TrackResult
 from ._smoother import MapSmoother
 from ._tracker import Tracker, check_problem
@@ -67,4 +68,12 @@ def track(
         )
     if not isinstance(method, Tracker):
         raise TypeError(f"track: method must be a Tracker, got {type(method).__name__}")
-    return method.run(key, prior, check_problem(problem))
+    problem = check_problem(problem)
+    if problem.bone_scale is not None:
+        J = feature_map_of(prior).skeleton.n_joints
+        if np.shape(problem.bone_scale) != (J,):
+            raise ValueError(
+                f"track: the problem's bone_scale has shape {np.shape(problem.bone_scale)}; the "
+                f"prior's skeleton has {J} joints"
+            )
+    return method.run(key, prior, problem)
