@@ -16,7 +16,7 @@ from mtex_jax.texture._scoring.packing import pack_clips
 from mtex_jax.texture._scoring.rows import CHUNK_ROWS, row_chunks, rows_score
 from mtex_jax.texture._scoring.scores import batch_scores_impl
 from mtex_jax.texture._segmentation.segment import segment_batch
-from mtex_jax.texture._texton.fit import SolveOptions
+from mtex_jax.texture._texton.options import SolveOptions
 
 
 def _smooth(rng, T, D):

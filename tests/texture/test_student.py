@@ -216,7 +216,7 @@ def test_warm_started_m_step_is_one_weighted_least_squares():
     weighted least squares on each texton's segments (in observation coordinates)."""
     from mtex_jax.texture._learning.mstep import fit_all
     from mtex_jax.texture._scoring.rows import row_chunks
-    from mtex_jax.texture._texton.fit import SolveOptions
+    from mtex_jax.texture._texton.options import SolveOptions
 
     rng = np.random.default_rng(10)
     D, nu, S, T = 3, 4.0, 2, 300
@@ -262,7 +262,7 @@ def test_cold_and_warm_m_steps_share_one_program():
     them does not trace again."""
     from mtex_jax.texture._learning.mstep import _fit_all_impl
     from mtex_jax.texture._scoring.rows import row_chunks
-    from mtex_jax.texture._texton.fit import SolveOptions
+    from mtex_jax.texture._texton.options import SolveOptions
 
     rng = np.random.default_rng(11)
     D, nu, S, T = 3, 4.0, 2, 300

@@ -17,7 +17,7 @@ from mtex_jax.texture import OBSERVATION_MODELS, choose_state_dim, fit_texton, o
 from mtex_jax.texture._learning.mstep import fit_all
 from mtex_jax.texture._observation.tied import INIT_STARTS, IW_FRAMES
 from mtex_jax.texture._scoring.rows import row_chunks
-from mtex_jax.texture._texton.fit import SolveOptions
+from mtex_jax.texture._texton.options import SolveOptions
 
 RIDGE, Q_FLOOR = 1e-6, 1e-6
 

@@ -4,14 +4,11 @@ texton distribution; design §10.10)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import equinox as eqx
 import numpy as np
 from jaxtyping import Float, Int
-
-if TYPE_CHECKING:
-    from ._model import MotionTexture
 
 __all__ = ["SUCCESSOR_MIN", "Vocabulary", "vocabulary"]
 
@@ -114,9 +111,24 @@ class Vocabulary(eqx.Module):
         return "\n".join(lines)
 
 
-def vocabulary(tex: MotionTexture) -> Vocabulary:
+class _Learned(Protocol):
+    """What a vocabulary reads of a learned texture (a
+    :class:`~mtex_jax.texture.MotionTexture`): its training segmentation (rows
+    ``(clip, start, length, texton)``), its transition matrix and its configuration."""
+
+    @property
+    def segments(self) -> Any: ...
+
+    @property
+    def M(self) -> Any: ...
+
+    @property
+    def config(self) -> Any: ...
+
+
+def vocabulary(tex: _Learned) -> Vocabulary:
     """The :class:`Vocabulary` of a learned texture (its training segmentation and ``M``)."""
-    K = tex.n_textons
+    K = int(np.shape(tex.M)[0])
     segs = np.asarray(tex.segments, dtype=np.int64).reshape(-1, 4)
     lab, length = segs[:, 3], segs[:, 2]
     counts = np.bincount(lab, minlength=K)[:K]

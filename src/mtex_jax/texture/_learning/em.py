@@ -21,7 +21,7 @@ from .._scoring.packing import pack_clips
 from .._scoring.rows import CHUNK_ROWS, row_chunks
 from .._segmentation.durations import fit_durations
 from .._segmentation.segment import segment_batch
-from .._texton.fit import SolveOptions
+from .._texton.options import SolveOptions
 from .._texton.texton import Texton
 from .init import Segs
 from .labels import capacity_for, padded_logs, take, transition_counts

@@ -16,7 +16,7 @@ Viterbi or forward algorithms.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -26,11 +26,30 @@ from jaxtyping import Array
 from .._texton.checks import check_dof
 
 if TYPE_CHECKING:
-    from .._texton.fit import SolveOptions
+    from .._texton.options import SolveOptions
     from .._texton.stats import DynamicsStats, Subspace
-    from .._texton.texton import Texton
 
-__all__ = ["ObservationModel"]
+__all__ = ["ObservationModel", "TextonView"]
+
+#: the texton class a member's M-step builds (the texton module imports the members, so they
+#: are handed its constructor rather than importing it)
+T = TypeVar("T")
+
+
+class TextonView(Protocol):
+    """What a member reads of a :class:`~mtex_jax.texture.Texton` (one, or a stack)."""
+
+    @property
+    def C(self) -> Array: ...
+
+    @property
+    def sigma2(self) -> Array: ...
+
+    @property
+    def res_a(self) -> Array: ...
+
+    @property
+    def res_s2(self) -> Array: ...
 
 
 class ObservationModel:
@@ -97,23 +116,26 @@ class ObservationModel:
 
     def solve(
         self,
-        fit_one: Callable[[Subspace, DynamicsStats], Texton],
+        fit_one: Callable[[Subspace, DynamicsStats], T],
+        make: Callable[..., T],
         sub: Subspace,
         ds: DynamicsStats,
         opts: SolveOptions,
-    ) -> Texton:
+    ) -> T:
         """The M-step's closed form for a stack of textons from their summed statistics
         (traced; design §2.4–§2.6). ``fit_one`` is the closed form of one texton
-        (``texton_from_stats`` with the learn's options ``opts``). Default: each texton on its own
+        (``texton_from_stats`` with the learn's options ``opts``); ``make`` the texton class,
+        for a model that builds the stack itself. Default: each texton on its own
         statistics, one at a time (``lax.map``: batched LAPACK calls can deadlock jaxlib's
         CPU thread pool on 2 cores). A model that ties parameters across textons overrides
         this."""
+        del make
         return jax.lax.map(lambda a: fit_one(a[0], a[1]), (sub, ds))
 
     # -- frame terms (prefix-sum form) ------------------------------------------------------
 
     def window_dyn_terms(
-        self, Yw: Array, Z: Array, s2: Array, mcmc: Array, textons: Texton, obs: Array, k: int
+        self, Yw: Array, Z: Array, s2: Array, mcmc: Array, textons: TextonView, obs: Array, k: int
     ) -> Array | None:
         """What the model adds to ``dyn`` on frames ``2 … W−1`` of a window of the blocked
         kernel (``(N_t, W − 2)``), or ``None``. ``Yw``: the window's centred frames;
@@ -122,13 +144,13 @@ class ObservationModel:
         window."""
         return None
 
-    def reference_dyn_terms(self, tex: Texton, U: Array, obs: Array) -> Array | None:
+    def reference_dyn_terms(self, tex: TextonView, U: Array, obs: Array) -> Array | None:
         """The same for one texton on a whole sequence (``(T − 2,)``, frames ``2 … T−1``), by
         the direct formula: the per-texton reference kernel. ``U``: the frames minus the
         texton's mean, ``y_t − μ``; ``obs``: the white residual terms."""
         return None
 
-    def segment_dyn_term(self, tex: Texton, Rres: Array) -> Array | None:
+    def segment_dyn_term(self, tex: TextonView, Rres: Array) -> Array | None:
         """The same summed over one segment from its residuals ``Rres (L, D)``: the direct
         per-segment reference."""
         return None

@@ -21,12 +21,11 @@ import numpy as np
 from jaxtyping import Array
 
 from .._texton.checks import LOG_2PI, UNROLL_MAX_K, project_radius, sym
-from .base import ObservationModel
+from .base import ObservationModel, TextonView
 
 if TYPE_CHECKING:
-    from .._texton.fit import SolveOptions
+    from .._texton.options import SolveOptions
     from .._texton.stats import DynamicsStats
-    from .._texton.texton import Texton
 
 __all__ = ["ResidualObservation", "window_ar_terms"]
 
@@ -73,7 +72,7 @@ class ResidualObservation(ObservationModel):
         return jnp.where(ok, a, 0.0), jnp.where(ok, s2, sigma2).astype(dtype)
 
     def window_dyn_terms(
-        self, Yw: Array, Z: Array, s2: Array, mcmc: Array, textons: Texton, obs: Array, k: int
+        self, Yw: Array, Z: Array, s2: Array, mcmc: Array, textons: TextonView, obs: Array, k: int
     ) -> Array | None:
         D = Yw.shape[1]
         if D <= k:
@@ -83,7 +82,7 @@ class ResidualObservation(ObservationModel):
         res_const = (D - k) * (LOG_2PI + jnp.log(res_s2))
         return window_ar_terms(Yw, Z, s2, ra1, ra2, res_s2, res_const, mcmc, k) - obs[:, 2:]
 
-    def reference_dyn_terms(self, tex: Texton, U: Array, obs: Array) -> Array | None:
+    def reference_dyn_terms(self, tex: TextonView, U: Array, obs: Array) -> Array | None:
         D, k = tex.C.shape
         if U.shape[0] < 3 or D <= k:
             return None
@@ -95,7 +94,7 @@ class ResidualObservation(ObservationModel):
         res = -0.5 * ((D - k) * (LOG_2PI + jnp.log(tex.res_s2)) + e2 / tex.res_s2)
         return res - obs[2:]
 
-    def segment_dyn_term(self, tex: Texton, Rres: Array) -> Array | None:
+    def segment_dyn_term(self, tex: TextonView, Rres: Array) -> Array | None:
         D, k = tex.C.shape
         if D <= k or Rres.shape[0] <= 2:
             return None

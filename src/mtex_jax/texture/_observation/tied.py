@@ -40,12 +40,12 @@ import numpy as np
 from jaxtyping import Array
 
 from .._texton.checks import project_radius, psd_cholesky, sym
+from .base import T
 from .full import FullObservation
 
 if TYPE_CHECKING:
-    from .._texton.fit import SolveOptions
+    from .._texton.options import SolveOptions
     from .._texton.stats import DynamicsStats, Subspace
-    from .._texton.texton import Texton
 
 __all__ = ["TiedObservation", "tied_dynamics", "tied_initial_state"]
 
@@ -90,22 +90,21 @@ class TiedObservation(FullObservation):
 
     def solve(
         self,
-        fit_one: Callable[[Subspace, DynamicsStats], Texton],
+        fit_one: Callable[[Subspace, DynamicsStats], T],
+        make: Callable[..., T],
         sub: Subspace,
         ds: DynamicsStats,
         opts: SolveOptions,
-    ) -> Texton:
+    ) -> T:
         """Every parameter but the subspace's (``μ``, ``C``, ``σ²``) from the tied closed
-        form; no untied fit is computed. ``fit_one`` is only traced abstractly, for the class
-        of texton it builds (the texton module imports this registry)."""
-        one = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), (sub, ds))
-        texton_type = type(jax.eval_shape(fit_one, *one))
+        form, built by ``make`` (the texton class); no untied fit is computed."""
+        del fit_one
         A1, A2, d, B = tied_dynamics(sub.C, ds, opts.ridge, opts.q_floor, opts.rho_max)
         m0, S0 = tied_initial_state(sub.C, ds, opts.q_floor)
         k, D = sub.C.shape[-1], sub.C.shape[-2]
         res_a, res_s2 = jax.vmap(lambda s, s2: self.fit_residual(s, k, D, s2, opts))(ds, sub.sigma2)
         dtype = ds.sum_zz.dtype
-        return texton_type(
+        return make(
             mu=sub.mu.astype(dtype),
             C=sub.C.astype(dtype),
             A1=A1,

@@ -14,13 +14,13 @@ from jaxtyping import Array, ArrayLike
 from .._observation import observation_model
 from .checks import (
     check_positive,
-    check_positive_int,
     check_state_dim,
     project_radius,
     psd_cholesky,
     student_weights,
     sym,
 )
+from .options import SolveOptions
 from .stats import (
     DynamicsStats,
     Subspace,
@@ -119,42 +119,6 @@ def texton_from_stats(
     opts = SolveOptions.make(ridge, q_floor, rho_max, init_prior_weight, observation, sigma2_floor)
     observation_model(observation).check_state_dim(int(subspace.C.shape[0]), k)
     return _texton_from_stats_jit(subspace, stats, opts)
-
-
-class SolveOptions(eqx.Module):
-    ridge: float = eqx.field(static=True)
-    q_floor: float = eqx.field(static=True)
-    rho_max: float | None = eqx.field(static=True)
-    init_prior_weight: float = eqx.field(static=True)
-    observation: str = eqx.field(static=True, default="paper")
-    sigma2_floor: float = eqx.field(static=True, default=1e-6)
-    dof: float | None = eqx.field(static=True, default=None)
-    irls_steps: int = eqx.field(static=True, default=10)
-
-    @staticmethod
-    def make(
-        ridge: Any,
-        q_floor: Any,
-        rho_max: Any,
-        init_prior_weight: Any,
-        observation: Any = "paper",
-        sigma2_floor: Any = 1e-6,
-        dof: Any = None,
-        irls_steps: Any = 10,
-    ) -> SolveOptions:
-        dof = observation_model(observation).check_dof(dof)
-        return SolveOptions(
-            ridge=check_positive("ridge", ridge, allow_zero=True),
-            q_floor=check_positive("q_floor", q_floor),
-            rho_max=None if rho_max is None else check_positive("rho_max", rho_max),
-            init_prior_weight=check_positive(
-                "init_prior_weight", init_prior_weight, allow_zero=True
-            ),
-            observation=observation,
-            sigma2_floor=check_positive("sigma2_floor", sigma2_floor),
-            dof=dof,
-            irls_steps=check_positive_int("irls_steps", irls_steps),
-        )
 
 
 def texton_from_stats_impl(subspace: Subspace, stats: DynamicsStats, opts: SolveOptions) -> Texton:
@@ -294,6 +258,7 @@ def fit_texton(
     Y, mask = check_fit_inputs(Y, mask)
     k = check_state_dim(state_dim, int(Y.shape[-1]), tuple(Y.shape))
     floor = check_positive("sigma2_floor", sigma2_floor)
+    dof = observation_model(observation).check_dof(dof)
     opts = SolveOptions.make(
         ridge, q_floor, rho_max, init_prior_weight, observation, floor, dof=dof
     )
