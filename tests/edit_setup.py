@@ -8,7 +8,7 @@ import functools
 import jax
 
 import mtex_jax as mj
-from mtex_jax.metrics import fit_contacts
+from mtex_jax.motion import fit_contacts
 from paper_settings import PAPER
 
 FPS = 30.0

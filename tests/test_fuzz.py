@@ -109,7 +109,7 @@ def texture_file(fm: mj.FeatureMap, path: Path, clip: mj.Motion) -> None:
         feature_map=fm,
         config=mj.LearnConfig(tmin=5, tmax=20, state_dim=k, **UNTIED),
         threshold=0.3,
-        contacts=mj.metrics.fit_contacts([clip], fps=fm.fps),
+        contacts=mj.motion.fit_contacts([clip], fps=fm.fps),
     )
     tex.save(path)
     mj.load_texture(path)

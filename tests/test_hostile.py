@@ -50,7 +50,8 @@ from hostile_cases import (
 )
 from mtex_jax.cli import main
 from mtex_jax.edit import load_contacts, save_contacts
-from mtex_jax.metrics import density_report, fit_contacts
+from mtex_jax.metrics import density_report
+from mtex_jax.motion import fit_contacts
 from shared_textures import dance_pair_texture
 
 DATA = Path(mj.__file__).resolve().parent / "data" / "deepmimic"

@@ -3,7 +3,7 @@
 In the style of ``test_hostile.py`` (the case tables of ``hostile_cases.py``): each case rewrites
 one member or metadata entry of a valid file and asserts the error type and message; the file's
 path is named. ``default=True`` cases run by default, the others with ``-m slow``. Both loaders
-build a :class:`~mtex_jax.metrics.ContactModel`, so they check what a fitted model passes:
+build a :class:`~mtex_jax.motion.ContactModel`, so they check what a fitted model passes:
 distinct foot joints of the skeleton, one finite threshold per foot, heights at or above the
 floor, positive speeds, a finite floor and a frame rate in ``(0, 10000]``.
 """
@@ -245,12 +245,12 @@ def test_a_contact_model_built_by_hand_is_checked_too(files):
     cm = files["tex"].contacts
     sk = cm.skeleton
     with pytest.raises(ValueError, match="below the floor"):
-        mj.metrics.ContactModel(
+        mj.motion.ContactModel(
             sk, cm.feet, cm.height_threshold - 1.0, cm.speed_threshold, cm.floor, cm.fps
         )
     with pytest.raises(TypeError, match="integer joint indices"):
-        mj.metrics.ContactModel(
+        mj.motion.ContactModel(
             sk, (True, 12), cm.height_threshold, cm.speed_threshold, cm.floor, cm.fps
         )
     with pytest.raises(ValueError, match="fps must be > 0"):
-        mj.metrics.ContactModel(sk, cm.feet, cm.height_threshold, cm.speed_threshold, cm.floor, 0.0)
+        mj.motion.ContactModel(sk, cm.feet, cm.height_threshold, cm.speed_threshold, cm.floor, 0.0)

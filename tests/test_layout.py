@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ast
 import importlib
+import types
 from pathlib import Path
 
 import mtex_jax
@@ -262,6 +263,24 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 def test_no_import_cycles():
     cycles = _cycles(_module_graph())
     assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_each_name_is_exported_by_one_subpackage():
+    """No object is in the ``__all__`` of two subpackages (the top level may re-export)."""
+    seen: dict[int, str] = {}
+    twice = []
+    for sub in sorted(p.parent.name for p in SRC.glob("*/__init__.py")):
+        mod = importlib.import_module(f"mtex_jax.{sub}")
+        for name in getattr(mod, "__all__", []):
+            obj = getattr(mod, name)
+            if isinstance(obj, types.ModuleType) or isinstance(obj, int | float | str | tuple):
+                continue  # constants and modules are values, not definitions
+            where = f"{sub}.{name}"
+            if id(obj) in seen:
+                twice.append(f"{seen[id(obj)]} = {where}")
+            else:
+                seen[id(obj)] = where
+    assert not twice, "exported twice:\n" + "\n".join(twice)
 
 
 def test_type_checking_imports_are_edges():

@@ -62,7 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import mtex_jax as mj
-from mtex_jax import metrics
+from mtex_jax import metrics, motion
 from mtex_jax.edit import clean
 from mtex_jax.texture import (
     forward_log_likelihood,
@@ -361,7 +361,7 @@ def main() -> None:
         [s.motion for s in syn0], boundaries=[s.boundaries() for s in syn0]
     )
     log("texture: constrained synthesis, sampled noise, cleaned (the same syntheses)")
-    contacts = metrics.fit_contacts(train)  # the training clips' feet, never the held-out
+    contacts = motion.fit_contacts(train)  # the training clips' feet, never the held-out
     syn_c = [clean(tex, s, contacts, loglik=False) for s in syn]
     rows["texture constrained (sampled noise), cleaned"] = judge.judge(
         [c.motion for c in syn_c], boundaries=[s.boundaries() for s in syn]

@@ -84,7 +84,7 @@ def worker(call: str, models: Path, loop: bool) -> dict:
     contacts = tex.contacts if hasattr(tex, "contacts") else None
     if call in ("clean", "edit") and contacts is None:
         train_names, _ = mj.io.salsa_split()
-        contacts = mj.metrics.fit_contacts(
+        contacts = mj.motion.fit_contacts(
             [mj.io.load_salsa(n).resample(FPS) for n in train_names], fps=FPS
         )
 

@@ -20,7 +20,7 @@ from jax.test_util import check_grads
 import edit_setup
 import mtex_jax as mj
 from mtex_jax import edit as E
-from mtex_jax.metrics import fit_contacts
+from mtex_jax.motion import fit_contacts
 
 FPS, T = edit_setup.FPS, edit_setup.T
 

@@ -32,7 +32,7 @@ from mtex_jax.edit._jacobians import (
 from mtex_jax.edit._prior import WhitenedTextons, prior_residuals
 from mtex_jax.edit._solve import sub_skeleton
 from mtex_jax.edit._whiten import band_matvec, band_quad
-from mtex_jax.metrics import fit_contacts
+from mtex_jax.motion import fit_contacts
 
 FPS, T = edit_setup.FPS, edit_setup.T
 

@@ -20,7 +20,7 @@ import mtex_jax as mj
 from hostile_cases import rewrite_npz
 from mtex_jax import edit as E
 from mtex_jax.cli import main
-from mtex_jax.metrics import fit_contacts
+from mtex_jax.motion import fit_contacts
 
 T = edit_setup.T
 

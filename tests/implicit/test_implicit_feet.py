@@ -60,7 +60,7 @@ def test_foot_contact_against_numpy(db):
     """c = 1 − min(s / median s, 1) with s the 5-frame moving average of the foot speed at
     each example's successor frame."""
     clips, model = db
-    from mtex_jax.metrics import joint_positions
+    from mtex_jax.motion import joint_positions
 
     feet = list(model.feet)
     assert [model.feature_map.skeleton.names[f] for f in feet] == ["rFoot", "lFoot"]

@@ -19,14 +19,14 @@ from mtex_jax.internal import (
     solve_rows_plain,
     solve_rows_unbatched,
     substitute_rows,
-    tridiag_solve_rows,
 )
-from mtex_jax.texture import (
+from mtex_jax.linalg import (
     block_banded_matvec,
     block_banded_solve,
     block_banded_solve_status,
     block_tridiag_cholesky,
     block_tridiag_solve,
+    tridiag_solve_rows,
 )
 
 

@@ -60,9 +60,9 @@ def test_derivatives_of_a_cubic_are_exact():
 
 def test_joint_positions_match_forward_kinematics_and_resample(clips):
     a, _ = clips
-    (p120,) = M.joint_positions([a])
+    (p120,) = mj.motion.joint_positions([a])
     np.testing.assert_allclose(p120, np.asarray(forward_kinematics(a)), atol=1e-9)
-    (p60,) = M.joint_positions(a, FPS)
+    (p60,) = mj.motion.joint_positions(a, FPS)
     # 120 → 60 Hz keeps every second frame exactly
     np.testing.assert_allclose(p60, p120[::2][: p60.shape[0]], atol=1e-9)
 
@@ -126,7 +126,7 @@ def test_bad_inputs_raise_value_errors_naming_the_problem(clips):
     with pytest.raises(ValueError, match="empty list"):
         M.realism([], [a])
     with pytest.raises(ValueError, match="empty list"):
-        M.fit_contacts([])
+        mj.motion.fit_contacts([])
     with pytest.raises(ValueError, match="too short"):
         M.realism([a[:5]], [a], fps=FPS)  # 3 frames at 60 Hz: no jerk
     with pytest.raises(ValueError, match="too short"):
@@ -142,7 +142,7 @@ def test_bad_inputs_raise_value_errors_naming_the_problem(clips):
         M.realism(humanoid, [a])
     with pytest.raises(ValueError, match="different skeletons"):
         M.novelty(humanoid, [a])
-    model = M.fit_contacts([a], fps=FPS)
+    model = mj.motion.fit_contacts([a], fps=FPS)
     with pytest.raises(ValueError, match="skeleton"):
         model.skating(humanoid)
 
@@ -150,10 +150,10 @@ def test_bad_inputs_raise_value_errors_naming_the_problem(clips):
 # ------------------------------------------------------------------ contacts
 def test_foot_joints_by_name_and_by_shape(clips):
     sk = clips[0].skeleton
-    assert [sk.names[i] for i in M.foot_joints(sk)] == ["rFoot", "lFoot"]
+    assert [sk.names[i] for i in mj.motion.foot_joints(sk)] == ["rFoot", "lFoot"]
     h = mj.io.HUMANOID3D
-    assert [h.names[i] for i in M.foot_joints(h)] == ["right_ankle", "left_ankle"]
-    assert M.foot_joints(sk, ["lShin"]) == (sk.index("lShin"),)
+    assert [h.names[i] for i in mj.motion.foot_joints(h)] == ["right_ankle", "left_ankle"]
+    assert mj.motion.foot_joints(sk, ["lShin"]) == (sk.index("lShin"),)
     # no usable names: the lowest leaf of each leg in the rest pose
     anon = Skeleton(
         names=("a", "b", "c", "d", "e", "f", "g"),
@@ -162,14 +162,14 @@ def test_foot_joints_by_name_and_by_shape(clips):
                  (0, 0.3, 0), (0, 0.3, 0)),
         channels=(("Xrotation",),) * 7,
     )  # fmt: skip
-    assert M.foot_joints(anon) == (2, 4)
+    assert mj.motion.foot_joints(anon) == (2, 4)
 
 
 def test_contact_model_thresholds_follow_the_documented_rules(clips):
     a, b = clips
-    model = M.fit_contacts([a, b], fps=FPS)
+    model = mj.motion.fit_contacts([a, b], fps=FPS)
     assert model.foot_names == ("rFoot", "lFoot")
-    ps = M.joint_positions([a, b], FPS)
+    ps = mj.motion.joint_positions([a, b], FPS)
     h = np.concatenate([p[:, list(model.feet), 1] for p in ps])
     np.testing.assert_allclose(model.height_threshold, np.median(h, axis=0))
     assert model.floor == pytest.approx(h.min())
@@ -187,10 +187,10 @@ def _held_pose(m: Motion, frame: int, n: int, velocity: np.ndarray) -> Motion:
 @pytest.mark.parametrize("speed", [0.3, 1.0])
 def test_a_foot_sliding_at_a_known_speed_gives_that_speed(clips, speed):
     a, b = clips
-    model = M.fit_contacts([a, b], fps=FPS)
+    model = mj.motion.fit_contacts([a, b], fps=FPS)
     lf = model.feet.index(a.skeleton.index("lFoot"))
     # a frame where the left foot is low
-    (p,) = M.joint_positions(a)
+    (p,) = mj.motion.joint_positions(a)
     frame = int(np.argmin(p[:, a.skeleton.index("lFoot"), 1]))
     direction = np.array([0.6, 0.0, -0.8])
     slide = _held_pose(a, frame, 240, speed * direction)
@@ -207,24 +207,26 @@ def test_a_foot_sliding_at_a_known_speed_gives_that_speed(clips, speed):
 
 def test_a_clip_lowered_by_5_cm_penetrates_5_cm(clips):
     a, b = clips
-    model = M.fit_contacts([a, b], fps=FPS)
+    model = mj.motion.fit_contacts([a, b], fps=FPS)
     assert model.penetration([a, b]).max_depth == 0.0
     assert model.penetration([a, b]).share == 0.0
     lowered = _shifted(a, [0.0, -0.05, 0.0])
     pen = model.penetration(lowered)
-    (p,) = M.joint_positions(lowered, FPS)
+    (p,) = mj.motion.joint_positions(lowered, FPS)
     lowest = p[:, list(model.feet), 1].min(axis=1)
     assert pen.share == pytest.approx(np.mean(lowest < model.floor))
     assert pen.max_depth == pytest.approx(model.floor - lowest.min())
     # the clip holding the floor, lowered by 5 cm, goes exactly 5 cm below it
-    holder = min((a, b), key=lambda m: M.joint_positions(m, FPS)[0][:, list(model.feet), 1].min())
+    holder = min(
+        (a, b), key=lambda m: mj.motion.joint_positions(m, FPS)[0][:, list(model.feet), 1].min()
+    )
     assert model.penetration(_shifted(holder, [0, -0.05, 0])).max_depth == pytest.approx(0.05)
 
 
 # ------------------------------------------------------------------ transitions
 def test_joint_jumps_and_a_seam_of_known_size(clips):
     a, b = clips
-    (p,) = M.joint_positions(a, FPS)
+    (p,) = mj.motion.joint_positions(a, FPS)
     (jmp,) = M.joint_jumps(a, FPS)
     np.testing.assert_allclose(jmp, np.linalg.norm(p[1:] - p[:-1], axis=-1).max(axis=1))
     p99 = M.jump_p99([a, b], FPS)
@@ -270,7 +272,7 @@ def test_novelty_nearest_window_matches_brute_force(clips):
     joints = M.moving_joints(a)
 
     def windows(m):  # straightforward re-implementation, one window at a time
-        (p,) = M.joint_positions(m, FPS)
+        (p,) = mj.motion.joint_positions(m, FPS)
         q0 = np.asarray(m.resample(FPS).rotations)[:, 0]
         psi = 2 * np.arctan2(q0[:, 2], q0[:, 0])
         out = []

@@ -438,14 +438,14 @@ def test_learned_models_round_trip_and_old_files_load_as_paper(tmp_path):
     )
     old = tmp_path / "old.npz"
     paper.save(old)
-    arrays, meta = mj.io.load_arrays_json(old, kind="mtex_jax.MotionTexture")
+    arrays, meta = mj.core.load_arrays_json(old, kind="mtex_jax.MotionTexture")
     meta["texton_fields"] = [f for f in meta["texton_fields"] if not f.startswith("res_")]
     meta.pop("observation")
     for f in ("observation", "durations"):
         meta["config"].pop(f)
     arrays = {k: v for k, v in arrays.items() if "res_" not in k}
     stripped = tmp_path / "stripped.npz"
-    mj.io.save_arrays_json(stripped, arrays, meta)
+    mj.core.save_arrays_json(stripped, arrays, meta)
     got = mj.load_texture(stripped)
     assert got.textons.observation == "paper" and got.config.durations == "flat"
     assert got.log_likelihood(Y) == pytest.approx(paper.log_likelihood(Y), rel=1e-12)

@@ -103,7 +103,7 @@ def _cmd_edit(args: argparse.Namespace) -> int:
 
 def _cmd_contacts(args: argparse.Namespace) -> int:
     from ..edit import save_contacts
-    from ..metrics import fit_contacts
+    from ..motion import fit_contacts
 
     if not str(args.output).lower().endswith(".npz"):
         raise ValueError(f"-o/--output must be a .npz file, got {args.output!r}")
@@ -154,7 +154,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "contacts",
         help="fit the foot-contact model of clips (for 'synth --clean --contacts')",
         description="Per-foot height and speed thresholds and the floor, from training clips "
-        "(mtex_jax.metrics.fit_contacts). A model file learned from clips carries its own; "
+        "(mtex_jax.motion.fit_contacts). A model file learned from clips carries its own; "
         "'mtex synth --clean --contacts FILE' uses this one instead (and a file "
         "MODEL.contacts.npz beside a model file without one).",
     )

@@ -1,7 +1,7 @@
 """Cleaning a synthesised motion: planted feet that do not slide, no foot below the floor.
 
-Contacts come from a :class:`~mtex_jax.metrics.ContactModel` fitted on the *training* clips
-(:func:`~mtex_jax.metrics.fit_contacts`: per-foot height and speed thresholds and the training
+Contacts come from a :class:`~mtex_jax.motion.ContactModel` fitted on the *training* clips
+(:func:`~mtex_jax.motion.fit_contacts`: per-foot height and speed thresholds and the training
 floor): the one a learned texture carries, or one passed by hand (:func:`save_contacts` /
 :func:`load_contacts` store it in a file of its own). On the raw motion a step ``t → t+1`` of
 foot ``f`` is a contact when the foot is low at both ends (``h < H_f``; optionally also slow,
@@ -21,8 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..core import as_array, load_arrays_json, save_arrays_json
-from ..metrics import ContactModel, PenetrationResult, SkatingResult
-from ..motion import Motion, Skeleton, sub_skeleton
+from ..motion import ContactModel, Motion, PenetrationResult, SkatingResult, Skeleton, sub_skeleton
 from ..texture import MotionTexture, Synthesis
 from ._api import (
     check_constraints,
@@ -497,7 +496,7 @@ def contacts_of(texture: MotionTexture, contacts: ContactModel | None = None) ->
         raise ValueError(
             "cleaning needs the training clips' contact model, and this texture carries none "
             "(it was learned from observation arrays, or saved before textures carried their "
-            "contacts): pass contacts= (mtex_jax.metrics.fit_contacts on the training clips, "
+            "contacts): pass contacts= (mtex_jax.motion.fit_contacts on the training clips, "
             "or mtex_jax.edit.load_contacts)"
         )
     return own

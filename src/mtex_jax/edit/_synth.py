@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..metrics import ContactModel
+from ..motion import ContactModel
 from ..texture import Synthesis, synthesize as _texture_synthesize
 from ._clean import clean as _clean, contacts_of
 
@@ -35,7 +35,7 @@ def synthesize(
         **kwargs: passed to :func:`mtex_jax.texture.synthesize`.
         clean: clean the synthesis (remove foot skating and floor penetration).
         contacts: a contact model overriding the texture's (a
-            :class:`~mtex_jax.metrics.ContactModel` fitted on the training clips, see
+            :class:`~mtex_jax.motion.ContactModel` fitted on the training clips, see
             :func:`~mtex_jax.edit.load_contacts`).
 
     Raises:

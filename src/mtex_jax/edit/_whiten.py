@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Float
 
-from ..texture import BlockTridiagCholesky, block_tridiag_cholesky, block_tridiag_solve
+from ..linalg import BlockTridiagCholesky, block_tridiag_cholesky, block_tridiag_solve
 
 __all__ = ["Whitening", "band_matvec", "band_quad", "whitening", "whitening_each"]
 

@@ -25,7 +25,6 @@ from ..linalg._blocktridiag import (
     solve_rows_plain as solve_rows_plain,
     solve_rows_unbatched as solve_rows_unbatched,
     substitute_rows as substitute_rows,
-    tridiag_solve_rows as tridiag_solve_rows,
 )
 
 # rotations: angles wrapped to (-π, π]
@@ -118,7 +117,6 @@ __all__ = [
     "solve_rows_unbatched",
     "standard_normal",
     "substitute_rows",
-    "tridiag_solve_rows",
     "usable_key_poses",
     "wrap_angle",
 ]

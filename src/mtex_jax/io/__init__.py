@@ -2,10 +2,6 @@
 default data and the DeepMimic clips), and the array + JSON model-file format.
 """
 
-from ..core import (
-    load_arrays_json as load_arrays_json,
-    save_arrays_json as save_arrays_json,
-)
 from ._bvh import (
     euler_to_quat as euler_to_quat,
     parse_bvh as parse_bvh,
@@ -38,7 +34,6 @@ __all__ = [
     "euler_to_quat",
     "example_names",
     "example_path",
-    "load_arrays_json",
     "load_example",
     "load_salsa",
     "parse_bvh",
@@ -50,6 +45,5 @@ __all__ = [
     "salsa_credit",
     "salsa_names",
     "salsa_split",
-    "save_arrays_json",
     "write_bvh",
 ]

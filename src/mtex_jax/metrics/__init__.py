@@ -13,16 +13,8 @@ from ._baselines import (
 )
 
 # --- motion metrics (realism, contacts, transitions, novelty) ---
-from ._contacts import (
-    ContactModel as ContactModel,
-    PenetrationResult as PenetrationResult,
-    SkatingResult as SkatingResult,
-    fit_contacts as fit_contacts,
-    foot_joints as foot_joints,
-)
 from ._kinematics import (
     derivatives as derivatives,
-    joint_positions as joint_positions,
     joint_speeds as joint_speeds,
     moving_joints as moving_joints,
 )
@@ -51,14 +43,11 @@ from ._transitions import (
 )
 
 __all__ = [
-    "ContactModel",
     "CopyResult",
     "GaussianAR2",
     "MotionJudge",
     "NoveltyResult",
-    "PenetrationResult",
     "RealismResult",
-    "SkatingResult",
     "TransitionResult",
     "boundary_jumps",
     "constant_velocity",
@@ -67,11 +56,8 @@ __all__ = [
     "density_report",
     "derivatives",
     "fit_ar2",
-    "fit_contacts",
-    "foot_joints",
     "hold_last",
     "joint_jumps",
-    "joint_positions",
     "joint_speeds",
     "jump_p99",
     "moving_joints",

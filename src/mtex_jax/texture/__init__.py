@@ -3,15 +3,6 @@ likelihoods, learning by EM (also data-parallel over the processes of a ``jax.di
 :func:`learn_distributed`), segmentation, texton paths and synthesis.
 """
 
-from ..linalg import (
-    BandedSolution as BandedSolution,
-    BlockTridiagCholesky as BlockTridiagCholesky,
-    block_banded_matvec as block_banded_matvec,
-    block_banded_solve as block_banded_solve,
-    block_banded_solve_status as block_banded_solve_status,
-    block_tridiag_cholesky as block_tridiag_cholesky,
-    block_tridiag_solve as block_tridiag_solve,
-)
 from ._config import (
     LearnConfig as LearnConfig,
 )
@@ -146,8 +137,6 @@ __all__ = [
     "OBSERVATION_MODELS",
     "PLAUSIBLE_TAIL",
     "SUCCESSOR_MIN",
-    "BandedSolution",
-    "BlockTridiagCholesky",
     "DynamicsStats",
     "FrameStats",
     "InnovationProcess",
@@ -163,11 +152,6 @@ __all__ = [
     "Texton",
     "Vocabulary",
     "bic_select",
-    "block_banded_matvec",
-    "block_banded_solve",
-    "block_banded_solve_status",
-    "block_tridiag_cholesky",
-    "block_tridiag_solve",
     "choose_state_dim",
     "choreograph",
     "companion_matrix",

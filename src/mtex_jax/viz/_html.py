@@ -9,7 +9,7 @@ millimetre (0.1 % of the figure's size), at the player's frame rate (30 Hz by de
 Coordinates: the skeleton's up axis becomes ``z`` (the same proper rotation as the GIF
 renderer), every motion stands on its own floor (its lowest point over the clip at height 0)
 and several motions are placed side by side along ``x``. Foot contacts are those of
-:func:`mtex_jax.metrics.fit_contacts` fitted on the motion itself (a foot is marked while it
+:func:`mtex_jax.motion.fit_contacts` fitted on the motion itself (a foot is marked while it
 is low and slow).
 """
 
@@ -28,8 +28,7 @@ from typing import Any
 import numpy as np
 
 from ..core import atomic_write
-from ..metrics import fit_contacts
-from ..motion import Motion, forward_kinematics_arrays
+from ..motion import Motion, fit_contacts, forward_kinematics_arrays
 from ..texture import MotionTexture, synthesize
 from ._panel import TO_PLOT, bone_segments, dot_joints
 
@@ -358,7 +357,7 @@ def write_html(
             texton, ``False`` for no gallery. At most :data:`MAX_GALLERY` textons are shown
             (the most used).
         fps: the player's frame rate (motions are subsampled to at most this rate).
-        contacts: mark foot contacts (:func:`~mtex_jax.metrics.fit_contacts` on each motion).
+        contacts: mark foot contacts (:func:`~mtex_jax.motion.fit_contacts` on each motion).
 
     Returns:
         the path written.
