@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._windows import _MAX_BITS, time_weights
+from ._windows import MAX_BITS, time_weights
 
 
 class MotionDatabase(eqx.Module):
@@ -92,8 +92,8 @@ class MotionDatabase(eqx.Module):
             raise ValueError(f"MotionDatabase.window must be ≥ 1, got {d}")
         if not 0 <= self.recent_weight < np.inf:
             raise ValueError(f"MotionDatabase.recent_weight must be ≥ 0, got {self.recent_weight}")
-        if not 1 <= b <= _MAX_BITS:
-            raise ValueError(f"MotionDatabase.n_components must be in 1..{_MAX_BITS}, got {b}")
+        if not 1 <= b <= MAX_BITS:
+            raise ValueError(f"MotionDatabase.n_components must be in 1..{MAX_BITS}, got {b}")
         if n < 1:
             raise ValueError("MotionDatabase: empty database")
         if p < 2 or p % 2:

@@ -17,15 +17,15 @@ from ._database import MotionDatabase
 from ._feet import foot_contact
 from ._hubness import neighbour_radius
 from ._model import ImplicitModel
-from ._tree import _codes_np, _right_svd
+from ._tree import codes_np, right_svd
 from ._windows import (
-    _MAX_BITS,
-    _check_motion_values,
-    _window_view,
+    MAX_BITS,
     channel_importance,
+    check_motion_values,
     pose_vectors,
     time_weights,
     velocity_channels,
+    window_view,
 )
 
 Weighting = Literal["body", "channel"]
@@ -95,7 +95,7 @@ def learn(
         raise ValueError(f"ImplicitModel.build: window must be an integer ≥ 1, got {window!r}")
     d = int(window)
     for i, m in enumerate(motions):
-        _check_motion_values(m, f"ImplicitModel.build: motion {i}")
+        check_motion_values(m, f"ImplicitModel.build: motion {i}")
     if fps is not None:
         motions = [m if m.fps == fps else m.resample(fps) for m in motions]
     for i, m in enumerate(motions):
@@ -169,7 +169,7 @@ def learn(
     wins, succ, clip_idx, frame_idx, sizes, accs = [], [], [], [], [], []
     for c, psi in enumerate(psis):
         # rows k of psi = frame k+1; window ending at row k needs k+1 < len(psi)
-        v = _window_view(psi / gamma, d)[:-1] * tw  # drop the window without a successor
+        v = window_view(psi / gamma, d)[:-1] * tw  # drop the window without a successor
         wins.append(v.reshape(v.shape[0], -1))
         succ.append(psi[d:])
         clip_idx.append(np.full(v.shape[0], c))
@@ -189,7 +189,7 @@ def learn(
 
     mean = windows.mean(axis=0)
     x = windows - mean
-    s, vt = _right_svd(x)
+    s, vt = right_svd(x)
     rank = int(np.sum(s > s[0] * 1e-10)) if s[0] > 0 else 0
     if rank == 0:
         raise ValueError("ImplicitModel.build: all windows are identical")
@@ -198,7 +198,7 @@ def learn(
         b = int(np.searchsorted(frac, float(min_explained) - 1e-12) + 1)
     else:
         b = math.floor(math.log2(n)) if n_components is None else int(n_components)
-    b = min(b, w, rank, _MAX_BITS)
+    b = min(b, w, rank, MAX_BITS)
     if max_components is not None:
         b = min(b, int(max_components))
     b = max(b, 1)
@@ -209,7 +209,7 @@ def learn(
     coeffs = x @ basis
     sigma = coeffs.std(axis=0)
     explained = float(np.sum(s[:b] ** 2) / np.sum(s**2))
-    codes = _codes_np(coeffs)
+    codes = codes_np(coeffs)
     order = np.argsort(codes, kind="stable").astype(np.int32)
     leaf_max = int(np.bincount(codes).max())
 

@@ -74,8 +74,8 @@ from ..core import check_key
 from ..motion import FeatureMap, Motion
 from ._database import MotionDatabase
 from ._synthesis_api import synthesize, synthesize_poses
-from ._tree import _sample_exact_jit, _sample_tree_jit
-from ._windows import _check_beta, _check_candidates, _is_concrete, _window_view, pose_vectors
+from ._tree import sample_exact_jit, sample_tree_jit
+from ._windows import check_beta, check_candidates, is_concrete, pose_vectors, window_view
 
 LeafRule = Literal["uniform", "weighted"]
 
@@ -271,7 +271,7 @@ class ImplicitModel(eqx.Module):
                 f"allows ({motion.n_frames} frames, need at least {self.window + 1})"
             )
         psi = pose_vectors(self.feature_map, motion)
-        return self.database.scale_windows(_window_view(psi, self.window))
+        return self.database.scale_windows(window_view(psi, self.window))
 
     def scale_windows(self, poses: Float[ArrayLike, "*batch d P"]) -> Float[Array, "*batch W"]:
         """Model coordinates of windows of pose vectors (:meth:`MotionDatabase.scale_windows`)."""
@@ -295,7 +295,7 @@ class ImplicitModel(eqx.Module):
 
     # ------------------------------------------------------------------ sampling
     def _prepare(self, probes: Any, beta: Any, fn: str) -> tuple[Array, Array, bool]:
-        _check_beta(beta, fn)
+        check_beta(beta, fn)
         probes = jnp.asarray(probes)
         if not jnp.issubdtype(probes.dtype, jnp.floating):
             probes = probes.astype(self.windows.dtype)
@@ -307,7 +307,7 @@ class ImplicitModel(eqx.Module):
                 f"{fn}: probes must have shape (N, {self.window_dim}) or ({self.window_dim},) "
                 f"(model coordinates, see windows_of), got {probes.shape}"
             )
-        if _is_concrete(probes) and not bool(jnp.all(jnp.isfinite(probes))):
+        if is_concrete(probes) and not bool(jnp.all(jnp.isfinite(probes))):
             raise ValueError(f"{fn}: probes contain NaN or inf")
         return probes, jnp.asarray(beta, probes.dtype), single
 
@@ -347,10 +347,10 @@ class ImplicitModel(eqx.Module):
         """
         if leaf not in ("uniform", "weighted"):
             raise ValueError(f"sample: leaf must be 'uniform' or 'weighted', got {leaf!r}")
-        _check_candidates(candidates, "sample")
+        check_candidates(candidates, "sample")
         check_key(key, "sample")
         probes, beta_a, single = self._prepare(probes, beta, "sample")
-        idx = _sample_tree_jit(self.database, key, probes, beta_a, leaf, int(candidates))
+        idx = sample_tree_jit(self.database, key, probes, beta_a, leaf, int(candidates))
         succ = self.successors[idx]
         return (idx[0], succ[0]) if single else (idx, succ)
 
@@ -372,7 +372,7 @@ class ImplicitModel(eqx.Module):
         """
         check_key(key, "sample_exact")
         probes, beta_a, single = self._prepare(probes, beta, "sample_exact")
-        idx = _sample_exact_jit(self.database, key, probes, beta_a)
+        idx = sample_exact_jit(self.database, key, probes, beta_a)
         succ = self.successors[idx]
         return (idx[0], succ[0]) if single else (idx, succ)
 

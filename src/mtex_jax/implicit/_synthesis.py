@@ -54,7 +54,7 @@ from ..motion import FeatureMap
 from ._database import MotionDatabase
 from ._feet import lock_root, root_channels
 from ._seams import smooth_seams
-from ._tree import _descend
+from ._tree import descend
 from ._windows import velocity_channels
 
 SynthLeafRule = Literal["uniform", "weighted", "exact"]
@@ -240,7 +240,7 @@ def _search_tree(
     def walk(k: PRNGKeyArray) -> tuple[Array, Array]:
         k_walk, k_leaf, k_block = jax.random.split(k, 3)
         u = jax.random.uniform(k_walk, (db.n_components,), dtype=c.dtype)
-        lo, hi, _ = _descend(db.sorted_codes, c / scale, u)
+        lo, hi, _ = descend(db.sorted_codes, c / scale, u)
         width = db.leaf_max if cfg.leaf_cap == 0 else min(cfg.leaf_cap, db.leaf_max)
         j = jnp.arange(width, dtype=jnp.int32)
         size = hi - lo

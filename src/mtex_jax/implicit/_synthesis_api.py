@@ -20,7 +20,7 @@ from ..core import MAX_GENERATED_FRAMES, bucket_length, check_count, check_key
 from ..motion import FeatureMap, Motion
 from ._database import MotionDatabase
 from ._synthesis import SynthesisConfig, SynthLeafRule, synthesize_jit
-from ._windows import _check_beta, _check_candidates, _is_concrete, pose_vectors
+from ._windows import check_beta, check_candidates, is_concrete, pose_vectors
 
 __all__ = ["SynthLeafRule", "SynthesisConfig", "SynthesisModel", "synthesize", "synthesize_poses"]
 
@@ -50,7 +50,7 @@ def _config(config: SynthesisConfig | None, leaf: Any, candidates: Any, fn: str)
             raise ValueError(f"{fn}: leaf must be 'uniform', 'weighted' or 'exact', got {leaf!r}")
         config = _replace(config, leaf=leaf)
     if candidates is not None:
-        _check_candidates(candidates, fn)
+        check_candidates(candidates, fn)
         config = _replace(config, candidates=int(candidates))
     return config
 
@@ -75,7 +75,7 @@ def synthesize_poses(
         example ``(n_frames,)`` whose successor gave each generated frame.
     """
     check_key(key, "synthesize")
-    _check_beta(beta, "synthesize")
+    check_beta(beta, "synthesize")
     if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
         raise ValueError(f"synthesize: n_frames must be an integer, got {n_frames!r}")
     if n_frames < 1:
@@ -84,7 +84,7 @@ def synthesize_poses(
     if sampler not in ("tree", "exact"):
         raise ValueError(f"synthesize: sampler must be 'tree' or 'exact', got {sampler!r}")
     cfg = _config(config, leaf, candidates, "synthesize")
-    if _is_concrete(noise):
+    if is_concrete(noise):
         nz = np.asarray(noise)
         if nz.shape != () or not (np.isfinite(nz) and nz >= 0):
             raise ValueError(f"synthesize: noise must be a finite scalar ≥ 0, got {noise!r}")
@@ -104,7 +104,7 @@ def synthesize_poses(
                 f"synthesize: start_window must be a Motion or a ({db.window}, "
                 f"{db.pose_dim}) array of pose vectors, got shape {win.shape}"
             )
-        if _is_concrete(win) and not bool(jnp.all(jnp.isfinite(win))):
+        if is_concrete(win) and not bool(jnp.all(jnp.isfinite(win))):
             raise ValueError("synthesize: start_window contains NaN or inf")
     dtype = db.windows.dtype
     win = win.astype(dtype)

@@ -24,13 +24,13 @@ def _right_svd_jit(x: Array) -> tuple[Array, Array]:
     return s, vt
 
 
-def _right_svd(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def right_svd(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Singular values and right singular vectors of ``x`` (``n × W``), in JAX."""
     s, vt = _right_svd_jit(jnp.asarray(x))
     return np.asarray(s, dtype=np.float64), np.asarray(vt, dtype=np.float64)
 
 
-def _codes_np(coeffs: np.ndarray) -> np.ndarray:
+def codes_np(coeffs: np.ndarray) -> np.ndarray:
     b = coeffs.shape[1]
     weights = (1 << np.arange(b - 1, -1, -1)).astype(np.int64)
     return ((coeffs > 0).astype(np.int64) @ weights).astype(np.int32)
@@ -44,7 +44,7 @@ def sign_codes(coeffs: Float[ArrayLike, "*batch b"]) -> Int[Array, "*batch"]:
     return jnp.sum(jnp.where(coeffs > 0, weights, 0), axis=-1).astype(jnp.int32)
 
 
-def _descend(
+def descend(
     sorted_codes: Int[Array, " n"], z: Float[Array, " b"], u: Float[Array, " b"]
 ) -> tuple[Array, Array, Array]:
     """Walk the sign tree (IP Eq. 7–8) for one probe with ``z_l = c_{t,l} / (√β σ_l)``.
@@ -84,7 +84,7 @@ def _tree_one(
     b = db.n_components
     scale = jnp.sqrt(beta) * db.sigma.astype(c.dtype)
     u = jax.random.uniform(k_walk, (b,), dtype=c.dtype)
-    lo, hi, logq = _descend(db.sorted_codes, c / scale, u)
+    lo, hi, logq = descend(db.sorted_codes, c / scale, u)
     if leaf == "uniform":
         v = jax.random.uniform(k_leaf, (), dtype=c.dtype)
         size = (hi - lo).astype(c.dtype)
@@ -147,6 +147,6 @@ def exact_sample_indices(
 # The jit entry points count their traces (eqx.debug.get_num_traces) so tests can show that
 # new probes of the same shape never recompile.
 _sample_tree_traced = eqx.debug.assert_max_traces(tree_sample_indices, max_traces=None)
-_sample_tree_jit = eqx.filter_jit(_sample_tree_traced)
+sample_tree_jit = eqx.filter_jit(_sample_tree_traced)
 _sample_exact_traced = eqx.debug.assert_max_traces(exact_sample_indices, max_traces=None)
-_sample_exact_jit = eqx.filter_jit(_sample_exact_traced)
+sample_exact_jit = eqx.filter_jit(_sample_exact_traced)

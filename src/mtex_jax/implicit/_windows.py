@@ -10,16 +10,16 @@ from jax.core import Tracer
 
 from ..motion import FeatureMap, Motion
 
-_MAX_BITS = 30  # sign codes are int32
+MAX_BITS = 30  # sign codes are int32
 
 
 # --------------------------------------------------------------------------- helpers
-def _is_concrete(x: Any) -> bool:
+def is_concrete(x: Any) -> bool:
     return not isinstance(x, Tracer)
 
 
-def _check_beta(beta: Any, fn: str) -> None:
-    if _is_concrete(beta):
+def check_beta(beta: Any, fn: str) -> None:
+    if is_concrete(beta):
         b = np.asarray(beta)
         if b.shape != ():
             raise ValueError(f"{fn}: beta must be a scalar, got shape {b.shape}")
@@ -27,14 +27,14 @@ def _check_beta(beta: Any, fn: str) -> None:
             raise ValueError(f"{fn}: beta (temperature) must be positive and finite, got {b!r}")
 
 
-def _check_candidates(candidates: Any, fn: str) -> None:
+def check_candidates(candidates: Any, fn: str) -> None:
     if isinstance(candidates, bool) or not isinstance(candidates, int | np.integer):
         raise ValueError(f"{fn}: candidates must be an integer, got {candidates!r}")
     if candidates < 1:
         raise ValueError(f"{fn}: candidates must be ≥ 1, got {candidates}")
 
 
-def _check_motion_values(m: Motion, what: str) -> None:
+def check_motion_values(m: Motion, what: str) -> None:
     for name in ("root_positions", "rotations"):
         a = np.asarray(getattr(m, name))
         if not np.all(np.isfinite(a)):
@@ -70,7 +70,7 @@ def pose_vectors(fm: FeatureMap, motion: Motion) -> np.ndarray:
     """
     if motion.n_frames < 2:
         raise ValueError(f"pose_vectors: a clip needs at least 2 frames, got {motion.n_frames}")
-    _check_motion_values(motion, "pose_vectors")
+    check_motion_values(motion, "pose_vectors")
     y = _encode(fm, motion)
     return np.concatenate([y[1:], y[1:] - y[:-1]], axis=1)
 
@@ -89,7 +89,7 @@ def time_weights(window: int, recent_weight: float) -> np.ndarray:
     return tw
 
 
-def _window_view(psi: np.ndarray, d: int) -> np.ndarray:
+def window_view(psi: np.ndarray, d: int) -> np.ndarray:
     """All ``(T' − d + 1, d, P)`` windows of consecutive rows (oldest first)."""
     v = np.lib.stride_tricks.sliding_window_view(psi, d, axis=0)  # (n, P, d)
     return np.ascontiguousarray(np.moveaxis(v, -1, 1))

@@ -23,7 +23,7 @@ from ._panel import (
 )
 from ._render import (
     MAX_GIF_FPS,
-    _check_motion,
+    check_motion,
     check_path,
     positive_float,
     require_plotting,
@@ -77,7 +77,7 @@ def render_gif_pair(
         TypeError / ValueError / ImportError: as :func:`render_gif`.
     """
     fn = "render_gif_pair"
-    motions = (_check_motion(left, fn), _check_motion(right, fn))
+    motions = (check_motion(left, fn), check_motion(right, fn))
     out = check_path(path, fn)
     rate = positive_float(fps, "fps", fn)
     if rate > MAX_GIF_FPS or any(rate > float(m.fps) * (1 + 1e-9) for m in motions):

@@ -61,7 +61,7 @@ def require_plotting(fn: str) -> None:
         raise ImportError(f"{fn} needs {' and '.join(missing)}; {PLOT_EXTRA}")
 
 
-def _check_motion(motion: Any, fn: str) -> Motion:
+def check_motion(motion: Any, fn: str) -> Motion:
     if not isinstance(motion, Motion):
         raise TypeError(f"{fn} expects a Motion, got {type(motion).__name__}")
     if motion.n_frames == 0:
@@ -188,7 +188,7 @@ def render_gif(
         ImportError: matplotlib or Pillow is not installed.
     """
     fn = "render_gif"
-    motion = _check_motion(motion, fn)
+    motion = check_motion(motion, fn)
     out = check_path(path, fn)
     t_all = motion.n_frames
     if frame_range is None:
@@ -329,7 +329,7 @@ def render_filmstrip(
         ImportError: matplotlib or Pillow is not installed.
     """
     fn = "render_filmstrip"
-    motion = _check_motion(motion, fn)
+    motion = check_motion(motion, fn)
     out = check_path(path, fn)
     t_all = motion.n_frames
     if frames is None:
