@@ -12,10 +12,10 @@ import numpy as np
 import scipy.stats
 from scipy.optimize import linear_sum_assignment
 
-from mtex_jax import internal
 from mtex_jax.texture import (
     Texton,
 )
+from mtex_jax.texture._texton.texton import TEXTON_FIELDS
 
 # --------------------------------------------------------------------------------------------
 # helpers: random systems and numpy references
@@ -186,7 +186,7 @@ def anisotropic_data(rng, T, D, decay=0.8):
 
 
 def assert_valid_texton(tex):
-    for name in internal.TEXTON_FIELDS:
+    for name in TEXTON_FIELDS:
         assert np.all(np.isfinite(np.asarray(getattr(tex, name)))), name
     assert np.min(np.linalg.eigvalsh(np.asarray(tex.Q))) > 0
     assert np.min(np.linalg.eigvalsh(np.asarray(tex.S0))) > 0

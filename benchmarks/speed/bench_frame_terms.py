@@ -21,8 +21,9 @@ AOT-compiled call under ``jit`` (also one execution) are timed as separate rows.
 Every numpy variant is timed with one OpenBLAS thread and with all of them (separate rows:
 the faster setting differs between variants and with the load of the shared machine), and the
 5× target is judged against the fastest numpy row. The previous JAX algorithm (per-texton
-``lax.map``, ``mtex_jax.internal.frame_terms_per_texton``) is timed as an extra, labelled row. All
-results are checked equal (rtol 1e-9). Runs are interleaved (JAX, numpy, numpy, JAX, …), with
+``lax.map``, ``frame_terms_per_texton`` of ``mtex_jax.texture._scoring.frame_terms_ref``) is
+timed as an extra, labelled row. All results are checked equal (rtol 1e-9). Runs are
+interleaved (JAX, numpy, numpy, JAX, …), with
 a pause of 0.1 s before each, so that background load on the shared machine affects all of
 them alike; medians are reported, with process CPU time (all threads) next to wall
 time. Compile time is reported separately: (a) AOT ``lower().compile()`` of the jitted call
@@ -67,9 +68,9 @@ from frame_terms_reference import (
     random_textons,
 )
 
-from mtex_jax import internal
-from mtex_jax.internal import available_cores as available_cores
 from mtex_jax.texture import Texton, frame_terms
+from mtex_jax.texture._scoring.frame_terms_ref import frame_terms_per_texton
+from mtex_jax.texture._scoring.workers import available_cores
 
 # --------------------------------------------------------------------------------------------
 # timing
@@ -157,7 +158,7 @@ def main() -> None:
     others: dict[str, Any] = {
         "jax": (dyn_j, obs_j),
         "jax_one": frame_terms(textons, Yj, workers=1),
-        "jax_per_texton": internal.frame_terms_per_texton(textons, Yj, chunk_size=1),
+        "jax_per_texton": frame_terms_per_texton(textons, Yj, chunk_size=1),
         "numpy_per_texton": numpy_per_texton(p, Y),
     }
     if not args.skip_slow:
@@ -207,7 +208,7 @@ def main() -> None:
         "jax": lambda: frame_terms(textons, Yj),
         "jax_one": lambda: frame_terms(textons, Yj, workers=1),
         "jax_aot": lambda: compiled(textons, Yj),
-        "jax_per_texton": lambda: internal.frame_terms_per_texton(textons, Yj, chunk_size=1),
+        "jax_per_texton": lambda: frame_terms_per_texton(textons, Yj, chunk_size=1),
         "jax_alloc": lambda: zeros_like_outputs(Yj[0, 0]),
     }
     for name, fn in numpy_fns.items():

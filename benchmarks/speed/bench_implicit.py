@@ -44,11 +44,8 @@ from implicit_report import write_report
 from implicit_settings import CMU, EVAL_CLIPS, N_PROBES, RESULTS, TUNE_CLIP, WINDOW
 
 from _common import command
-from mtex_jax.implicit import ImplicitModel, SynthesisConfig
-from mtex_jax.internal import (
-    sample_exact_traced as exact_sample_indices,
-    sample_tree_traced as tree_sample_indices,
-)
+from mtex_jax.implicit import ImplicitModel, SynthesisConfig, tree_sample_indices
+from mtex_jax.implicit._tree import exact_sample_indices
 from mtex_jax.tracking import make_problem, track
 
 

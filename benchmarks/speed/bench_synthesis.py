@@ -56,9 +56,8 @@ try:
     import mtex_jax  # noqa: F401
 except ImportError:  # running from a source checkout without installation
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "src"))
-# no public or mtex_jax.internal name for these three yet (the dense reference and the noise)
+# the constrained synthesis' building blocks (the dense reference and the noise)
 from mtex_jax.internal import (
-    bridge_usable,
     constrained_equations,
     constrained_normal_system as normal_system,
     draw_noise as draw_noise,
@@ -66,6 +65,7 @@ from mtex_jax.internal import (
     solve_constrained,
 )
 from mtex_jax.texture import Texton, synthesize_texton
+from mtex_jax.texture._synthesis.bridge import bridge_usable
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _common import RESULTS, command

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,7 +13,8 @@ import pytest
 import mtex_jax as mj
 from mtex_jax.cli import main
 from mtex_jax.implicit import ImplicitModel, pose_vectors, sign_codes
-from mtex_jax.internal import encode_motion, sample_exact_traced, sample_tree_traced
+from mtex_jax.implicit._windows import encode_motion
+from traces import count_traces
 
 WINDOW = 10
 HELD_OUT = 2  # 60_03: probes come from a clip the database has not seen
@@ -285,15 +285,15 @@ def test_sampling_new_probes_does_not_recompile(model, probes):
     key = jax.random.PRNGKey(0)
     for leaf in ("uniform", "weighted"):
         model.sample(key, probes, 0.1, leaf=leaf)  # compile (or reuse) once
-        n0 = eqx.debug.get_num_traces(sample_tree_traced)
-        for k in range(4):
-            new = probes + 0.01 * (k + 1)
-            model.sample(jax.random.PRNGKey(k), new, 0.1 * (k + 1), leaf=leaf)
-        assert eqx.debug.get_num_traces(sample_tree_traced) == n0
+        with count_traces() as seen:
+            for k in range(4):
+                new = probes + 0.01 * (k + 1)
+                model.sample(jax.random.PRNGKey(k), new, 0.1 * (k + 1), leaf=leaf)
+        assert seen["tree_sample_indices"] == 0
     model.sample_exact(key, probes, 0.1)
-    n1 = eqx.debug.get_num_traces(sample_exact_traced)
-    model.sample_exact(jax.random.PRNGKey(9), probes * 0.5, 2.0)
-    assert eqx.debug.get_num_traces(sample_exact_traced) == n1
+    with count_traces() as seen:
+        model.sample_exact(jax.random.PRNGKey(9), probes * 0.5, 2.0)
+    assert seen["exact_sample_indices"] == 0
 
 
 # --------------------------------------------------------------------------- synthesis

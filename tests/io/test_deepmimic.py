@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-from mtex_jax.internal import DEEPMIMIC_FRAME_SIZE
+from mtex_jax.io._deepmimic import FRAME_SIZE as DEEPMIMIC_FRAME_SIZE
 
 
 def test_examples_load_with_plausible_values():

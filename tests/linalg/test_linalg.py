@@ -13,13 +13,6 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from jax.test_util import check_grads
 
-from mtex_jax.internal import (
-    block_tridiag_factor,
-    solve_rows_fused,
-    solve_rows_plain,
-    solve_rows_unbatched,
-    substitute_rows,
-)
 from mtex_jax.linalg import (
     block_banded_matvec,
     block_banded_solve,
@@ -27,6 +20,13 @@ from mtex_jax.linalg import (
     block_tridiag_cholesky,
     block_tridiag_solve,
     tridiag_solve_rows,
+)
+from mtex_jax.linalg._blocktridiag import (
+    block_tridiag_factor,
+    solve_rows_fused,
+    solve_rows_plain,
+    solve_rows_unbatched,
+    substitute_rows,
 )
 
 

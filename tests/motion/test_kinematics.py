@@ -11,8 +11,8 @@ from jax.test_util import check_grads
 from scipy.spatial.transform import Rotation
 
 import mtex_jax as mj
-from mtex_jax.internal import wrap_angle
 from mtex_jax.motion import quat_rotate, quat_twist
+from mtex_jax.motion._rotation import wrap_angle
 
 SK = mj.io.HUMANOID3D
 

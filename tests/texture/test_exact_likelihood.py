@@ -13,7 +13,6 @@ import pytest
 import scipy.stats
 from jax.test_util import check_grads
 
-from mtex_jax import internal
 from mtex_jax.texture import (
     RefineReport,
     Texton,
@@ -22,6 +21,7 @@ from mtex_jax.texture import (
     fit_texton,
     refine_texton,
 )
+from mtex_jax.texture._texton.texton import TEXTON_FIELDS
 from texton_cases import (
     anisotropic_data,
     assert_valid_texton,
@@ -79,7 +79,7 @@ def test_exact_log_likelihood_of_fitted_texton_equals_dense_gaussian():
     rng = np.random.default_rng(14)
     Y = anisotropic_data(rng, 60, 6)
     tex = fit_texton(Y, state_dim=2)
-    p: dict[str, Any] = {n: np.asarray(getattr(tex, n)) for n in internal.TEXTON_FIELDS}
+    p: dict[str, Any] = {n: np.asarray(getattr(tex, n)) for n in TEXTON_FIELDS}
     np.testing.assert_allclose(
         float(exact_log_likelihood(tex, Y[:8])), dense_joint_logpdf(p, Y[:8]), atol=1e-8
     )

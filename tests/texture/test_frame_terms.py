@@ -7,13 +7,11 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.stats
 
-from mtex_jax import internal
 from mtex_jax.texture import (
     SegmentScorer,
     fit_texton,
@@ -23,6 +21,11 @@ from mtex_jax.texture import (
     segment_scores,
     stack_textons,
 )
+from mtex_jax.texture._scoring import (
+    frame_terms as frame_terms_module,
+    frame_terms_ref,
+    workers as scoring_workers,
+)
 from texton_cases import (
     anisotropic_data,
     assert_terms_equal_reference,
@@ -31,6 +34,7 @@ from texton_cases import (
     scipy_segment_ll,
     to_texton,
 )
+from traces import count_traces
 
 # --------------------------------------------------------------------------------------------
 # Per-frame terms, segment scores and the direct segment likelihood
@@ -78,7 +82,7 @@ def test_frame_and_init_terms_match_scipy():
     np.testing.assert_allclose(o1, obs[1], rtol=1e-13)
     # the per-texton algorithm (chunk_size) and other time blocks give the same result
     for chunk in (2, 1):
-        dc, oc = internal.frame_terms_per_texton(st, Y, chunk_size=chunk)
+        dc, oc = frame_terms_ref.frame_terms_per_texton(st, Y, chunk_size=chunk)
         np.testing.assert_allclose(dc, dyn, rtol=1e-12, err_msg=f"chunk {chunk}")
         np.testing.assert_allclose(oc, obs, rtol=1e-12, err_msg=f"chunk {chunk}")
     for kw in (dict(block_size=1), dict(block_size=5)):
@@ -172,7 +176,7 @@ def test_frame_terms_block_and_chunk_arguments_are_validated():
         with pytest.raises(ValueError, match="block_size"):
             frame_terms(st, Y, block_size=bad)  # type: ignore[arg-type]
         with pytest.raises(ValueError, match="chunk_size"):
-            internal.frame_terms_per_texton(st, Y, chunk_size=bad)  # type: ignore[arg-type]
+            frame_terms_ref.frame_terms_per_texton(st, Y, chunk_size=bad)  # type: ignore[arg-type]
     with pytest.raises(TypeError):
         frame_terms(st, Y, chunk_size=1)  # type: ignore[call-arg]  # no longer a public knob
 
@@ -191,9 +195,9 @@ def test_frame_terms_split_over_concurrent_executions(workers, monkeypatch):
     st = stack_textons([to_texton(p) for p in ps])
     Y = rng.standard_normal((T, D)) + 0.5
     parts = min(workers, 7)
-    assert internal.frame_terms_parts(workers, st, jnp.asarray(Y)) == parts
+    assert scoring_workers.n_parts(workers, st, jnp.asarray(Y)) == parts
     calls = []  # (thread, rows) of every kernel execution
-    kernel = internal.frame_terms_jit
+    kernel = frame_terms_module.frame_terms_jit
 
     def spy(textons, *args, **kwargs):
         calls.append((threading.get_ident(), textons.n_textons))
@@ -244,11 +248,11 @@ def test_frame_terms_workers_choice_and_validation():
     rng = np.random.default_rng(17)
     st = stack_textons([to_texton(random_texton_np(rng, 4, 2)) for _ in range(3)])
     small, large = jnp.zeros((10, 4)), jnp.zeros((2**20 // 3 + 1, 4))
-    cores = internal.available_cores()
-    assert internal.frame_terms_parts(None, st, small) == 1  # too little work: one execution
-    assert internal.frame_terms_parts(None, st, large) == min(cores, 3)
-    assert internal.frame_terms_parts(1, st, large) == 1
-    traced = jax.jit(lambda y: jnp.asarray(internal.frame_terms_parts(2, st, y)))(small)
+    cores = scoring_workers.available_cores()
+    assert scoring_workers.n_parts(None, st, small) == 1  # too little work: one execution
+    assert scoring_workers.n_parts(None, st, large) == min(cores, 3)
+    assert scoring_workers.n_parts(1, st, large) == 1
+    traced = jax.jit(lambda y: jnp.asarray(scoring_workers.n_parts(2, st, y)))(small)
     assert int(traced) == 1  # under a trace: one computation
     Y = rng.standard_normal((12, 4))
     for bad in (0, -1, 2.5, True, "2"):
@@ -309,17 +313,16 @@ def test_frame_terms_do_not_retrace_for_new_data():
     rng = np.random.default_rng(12)
     st = stack_textons([to_texton(random_texton_np(rng, 6, 2)) for _ in range(3)])
     frame_terms(st, rng.standard_normal((40, 6)))
-    internal.frame_terms_per_texton(st, rng.standard_normal((40, 6)), chunk_size=1)
-    n0 = eqx.debug.get_num_traces(internal.frame_terms_traced)
-    n0_chunk = eqx.debug.get_num_traces(internal.all_terms_traced)
-    for _ in range(3):
-        st2 = jax.tree.map(lambda a: a * 1.01, st)
-        frame_terms(st2, rng.standard_normal((40, 6)))
-        internal.frame_terms_per_texton(st2, rng.standard_normal((40, 6)), chunk_size=1)
-    assert eqx.debug.get_num_traces(internal.frame_terms_traced) == n0
-    assert eqx.debug.get_num_traces(internal.all_terms_traced) == n0_chunk
+    frame_terms_ref.frame_terms_per_texton(st, rng.standard_normal((40, 6)), chunk_size=1)
+    with count_traces() as seen:
+        for _ in range(3):
+            st2 = jax.tree.map(lambda a: a * 1.01, st)
+            frame_terms(st2, rng.standard_normal((40, 6)))
+            frame_terms_ref.frame_terms_per_texton(st2, rng.standard_normal((40, 6)), chunk_size=1)
+    assert seen["frame_terms_impl"] == 0
+    assert seen["_all_terms_impl"] == 0
     fit_texton(rng.standard_normal((40, 6)), state_dim=2)
-    n1 = eqx.debug.get_num_traces(internal.fit_texton_traced)
-    for _ in range(3):
-        fit_texton(rng.standard_normal((40, 6)), rng.integers(-1, 3, 40), state_dim=2)
-    assert eqx.debug.get_num_traces(internal.fit_texton_traced) == n1
+    with count_traces() as seen:
+        for _ in range(3):
+            fit_texton(rng.standard_normal((40, 6)), rng.integers(-1, 3, 40), state_dim=2)
+    assert seen["_fit_texton_impl"] == 0

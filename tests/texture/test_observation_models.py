@@ -16,7 +16,6 @@ from scipy.stats import multivariate_normal
 
 import mtex_jax as mj
 from dp_problems import compositions
-from mtex_jax.internal import frame_terms_per_texton
 from mtex_jax.texture import (
     Texton,
     choose_state_dim,
@@ -31,6 +30,7 @@ from mtex_jax.texture import (
     spectral_radius,
     stack_textons,
 )
+from mtex_jax.texture._scoring.frame_terms_ref import frame_terms_per_texton
 
 
 def _smooth(rng, T, D, n_osc=3):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-from mtex_jax import internal
+from mtex_jax.texture._synthesis import keyposes, sequence
 from paper_settings import PAPER
 
 
@@ -168,12 +168,12 @@ def test_key_pose_chain_is_the_minimum_cost_chain(texture):
     rng = np.random.default_rng(3)
     for _ in range(4):
         path = rng.choice(present, 4)
-        got = internal.key_pose_instances(texture, None, path)
+        got = keyposes.key_pose_instances(texture, None, path)
         assert np.all(lab[got] == path)
         cands = candidates(texture, path)
         best = min(_chain_cost_reference(texture, c) for c in itertools.product(*cands))
         assert _chain_cost_reference(texture, got) == pytest.approx(best, rel=1e-9, abs=1e-12)
-        keyed = internal.key_pose_instances(texture, jax.random.key(1), path)
+        keyed = keyposes.key_pose_instances(texture, jax.random.key(1), path)
         assert _chain_cost_reference(texture, keyed) == pytest.approx(best, rel=1e-9, abs=1e-12)
 
 
@@ -182,18 +182,18 @@ def test_key_poses_replay_training_transitions_where_they_exist(texture):
     adjacent in training (cost zero)."""
     texture = many_instances(texture, seed=1)
     segs = np.asarray(texture.segments)
-    nxt = internal.next_segments(texture)
+    nxt = keyposes.next_segments(texture)
     ok, _ = usable_reference(texture)
     nxt = np.where(ok[np.maximum(nxt, 0)], nxt, -1)  # runs of usable key poses only
     i = int(np.flatnonzero(ok & (nxt >= 0) & (nxt[np.maximum(nxt, 0)] >= 0))[0])
     run = [i, int(nxt[i]), int(nxt[nxt[i]])]
     path = segs[run, 3]
-    got = internal.key_pose_instances(texture, None, path)
+    got = keyposes.key_pose_instances(texture, None, path)
     assert all(nxt[a] == b for a, b in itertools.pairwise(got))
     assert np.all(segs[got, 3] == path)
     # paths of one and two textons
-    assert internal.key_pose_instances(texture, None, path[:1]).shape == (1,)
-    two = internal.key_pose_instances(texture, jax.random.key(0), path[:2])
+    assert keyposes.key_pose_instances(texture, None, path[:1]).shape == (1,)
+    two = keyposes.key_pose_instances(texture, jax.random.key(0), path[:2])
     assert nxt[two[0]] == two[1]
 
 
@@ -202,7 +202,7 @@ def test_outlier_key_poses_are_used_only_when_nothing_else_is_there(texture):
     where it would replay a training transition; a texton with only glitches still gets one."""
     texture = many_instances(texture, seed=2)
     lab = np.asarray(texture.key_pose_labels)
-    nxt = internal.next_segments(texture)
+    nxt = keyposes.next_segments(texture)
     kp = np.array(texture.key_poses)
     rng = np.random.default_rng(0)
     kp[:, 1] = kp[:, 0] + 0.05 * rng.standard_normal(kp[:, 0].shape)  # smooth pairs
@@ -215,19 +215,19 @@ def test_outlier_key_poses_are_used_only_when_nothing_else_is_there(texture):
     kp[g, 1] = kp[g, 0] + 1.0
     tex = eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(kp))
     usable, jumps = usable_reference(tex)
-    np.testing.assert_allclose(internal.key_pair_jumps(tex), jumps, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(keyposes.key_pair_jumps(tex), jumps, rtol=1e-9, atol=1e-12)
     assert not usable[g] and jumps[g] > 3 * np.max(before)
     path = lab[[a, g]]
     for key in (None, jax.random.key(0), jax.random.key(1)):
-        got = internal.key_pose_instances(tex, key, path)
+        got = keyposes.key_pose_instances(tex, key, path)
         assert got[1] != g and lab[got[1]] == lab[g]
-    assert np.array_equal(internal.usable_key_poses(tex), usable)
+    assert np.array_equal(keyposes.usable_key_poses(tex), usable)
     # every pair of that texton a glitch: they stay candidates
     for j in np.flatnonzero(lab == lab[g]):
         kp[j, 1] = kp[j, 0] + 1.0
     tex = eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(kp))
-    got = internal.key_pose_instances(tex, None, path)
-    assert lab[got[1]] == lab[g] and not internal.usable_key_poses(tex)[got[1]]
+    got = keyposes.key_pose_instances(tex, None, path)
+    assert lab[got[1]] == lab[g] and not keyposes.usable_key_poses(tex)[got[1]]
 
 
 def test_outlier_rule_without_feature_map_and_degenerate_jumps(texture):
@@ -249,16 +249,16 @@ def test_outlier_rule_without_feature_map_and_degenerate_jumps(texture):
     j = rng.uniform(0.5, 1.0, n)
     j[[3, 11]] = [4.0, 9.0]  # two glitches
     tex = with_jumps(j)
-    np.testing.assert_allclose(internal.key_pair_jumps(tex), j, rtol=1e-9)
-    assert np.flatnonzero(~internal.usable_key_poses(tex)).tolist() == [3, 11]
-    assert internal.usable_key_poses(with_jumps(np.full(n, 0.7))).all()
+    np.testing.assert_allclose(keyposes.key_pair_jumps(tex), j, rtol=1e-9)
+    assert np.flatnonzero(~keyposes.usable_key_poses(tex)).tolist() == [3, 11]
+    assert keyposes.usable_key_poses(with_jumps(np.full(n, 0.7))).all()
     static = np.zeros(n)
     static[: n // 5] = 1e-6  # most pairs do not move: the moving ones are not outliers
-    assert internal.usable_key_poses(with_jumps(static)).all()
+    assert keyposes.usable_key_poses(with_jumps(static)).all()
     k = kp.copy()
     k[:, 1] = k[:, 0] + j[:, None] * step
     k[5, 1, 0] = np.nan
-    usable = internal.usable_key_poses(eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(k)))
+    usable = keyposes.usable_key_poses(eqx.tree_at(lambda t: t.key_poses, texture, jnp.asarray(k)))
     assert np.flatnonzero(~usable).tolist() == [3, 5, 11]
 
 
@@ -307,7 +307,7 @@ def test_choreograph_starts_and_ends_at_the_given_poses(texture, n_frames):
 
 
 def test_same_sizes_do_not_recompile(texture, monkeypatch):
-    counted = eqx.filter_jit(eqx.debug.assert_max_traces(internal.path_core, max_traces=1))
+    counted = eqx.filter_jit(eqx.debug.assert_max_traces(sequence.path_core, max_traces=1))
     monkeypatch.setattr("mtex_jax.texture._synthesis.sequence._path_core_jit", counted)
     for seed in range(3):  # different paths, same padded sizes
         mj.synthesize(jax.random.key(seed), texture, path=[0, 1, 2], lengths=[20, 21, 22])

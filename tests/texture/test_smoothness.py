@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mtex_jax as mj
-from mtex_jax.internal import usable_key_poses
+from mtex_jax.texture._synthesis.keyposes import usable_key_poses
 from paper_settings import PAPER
 
 FPS = 60.0

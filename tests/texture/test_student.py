@@ -15,7 +15,6 @@ import scipy.stats as st
 from jax.test_util import check_grads
 
 import mtex_jax as mj
-from mtex_jax.internal import frame_terms_per_texton
 from mtex_jax.texture import (
     LearnConfig,
     exact_log_likelihood,
@@ -26,6 +25,7 @@ from mtex_jax.texture import (
     segment_log_likelihood,
     stack_textons,
 )
+from mtex_jax.texture._scoring.frame_terms_ref import frame_terms_per_texton
 
 
 def _heavy(rng, T, D, nu=4.0):

@@ -14,14 +14,10 @@ from hypothesis import given, settings, strategies as st
 from jax.test_util import check_grads
 from scipy import stats
 
-from mtex_jax.internal import (
-    bridge_usable,
-    constrained_equations,
-    sincos_turn,
-    solve_constrained,
-    standard_normal,
-)
+from mtex_jax.internal import constrained_equations, solve_constrained
 from mtex_jax.texture import Texton, fit_texton, spectral_radius, synthesize_texton
+from mtex_jax.texture._noise.draws import sincos_turn, standard_normal
+from mtex_jax.texture._synthesis.bridge import bridge_usable
 
 
 def make_texton(seed: int, D: int, k: int) -> Texton:

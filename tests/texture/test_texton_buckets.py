@@ -15,9 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mtex_jax.internal import bridge_usable, standard_normal
 from mtex_jax.texture import Texton, synthesize_texton
+from mtex_jax.texture._noise.draws import standard_normal
 from mtex_jax.texture._synthesis import texton_buckets as tb, texton_synthesis as tts
+from mtex_jax.texture._synthesis.bridge import bridge_usable
 
 
 def make_texton(seed: int, D: int = 6, k: int = 3, gain: float = 0.9) -> Texton:

@@ -10,7 +10,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mtex_jax import internal
 from mtex_jax.texture import (
     DynamicsStats,
     FrameStats,
@@ -23,6 +22,7 @@ from mtex_jax.texture import (
     subspace_from_stats,
     texton_from_stats,
 )
+from mtex_jax.texture._texton.texton import TEXTON_FIELDS
 from texton_cases import (
     anisotropic_data,
     make_oscillator_system,
@@ -140,7 +140,7 @@ def test_batched_sequences_equal_concatenation_with_boundary_mask():
     concat = fit_texton(
         Y.reshape(2 * T, D), np.concatenate([m1, np.where(m2 >= 0, m2 + 10, -1)]), state_dim=k
     )
-    for name in internal.TEXTON_FIELDS:
+    for name in TEXTON_FIELDS:
         np.testing.assert_allclose(
             getattr(batched, name), getattr(concat, name), rtol=1e-10, atol=1e-10, err_msg=name
         )
@@ -151,7 +151,7 @@ def test_batched_sequences_equal_concatenation_with_boundary_mask():
     ds = sum([dynamics_stats(Y[0], m1, sub), dynamics_stats(Y[1], m2, sub)])
     assert isinstance(ds, DynamicsStats)
     two_pass = texton_from_stats(sub, ds)
-    for name in internal.TEXTON_FIELDS:
+    for name in TEXTON_FIELDS:
         np.testing.assert_allclose(
             getattr(two_pass, name), getattr(batched, name), rtol=1e-10, atol=1e-10
         )
@@ -163,7 +163,7 @@ def test_mask_none_and_boolean_mask():
     a = fit_texton(Y, state_dim=2)
     b = fit_texton(Y, np.zeros(40, np.int64), state_dim=2)
     c = fit_texton(Y, np.ones(40, bool), state_dim=2)
-    for name in internal.TEXTON_FIELDS:
+    for name in TEXTON_FIELDS:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
         np.testing.assert_array_equal(getattr(a, name), getattr(c, name))
 

@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mtex_jax import internal
 from mtex_jax.texture import (
     Texton,
     dynamics_stats,
@@ -23,6 +22,7 @@ from mtex_jax.texture import (
     stack_textons,
     subspace_from_stats,
 )
+from mtex_jax.texture._texton.texton import TEXTON_FIELDS
 from texton_cases import (
     anisotropic_data,
     assert_valid_texton,
@@ -206,7 +206,7 @@ def test_float32_smoke():
     rng = np.random.default_rng(24)
     Y = anisotropic_data(rng, 300, 10).astype(np.float32)
     tex = fit_texton(Y, np.repeat(np.arange(3), 100), state_dim=4)
-    for name in internal.TEXTON_FIELDS:
+    for name in TEXTON_FIELDS:
         a = getattr(tex, name)
         assert a.dtype == jnp.float32, name
         assert np.all(np.isfinite(np.asarray(a))), name

@@ -10,8 +10,8 @@ import pytest
 from PIL import Image
 
 import mtex_jax as mj
-from mtex_jax.internal import TO_PLOT
 from mtex_jax.viz import render_filmstrip, render_gif
+from mtex_jax.viz._panel import TO_PLOT
 
 LEFT_RGB = (0x1F, 0x5F, 0xBF)
 RIGHT_RGB = (0xD6, 0x27, 0x28)

@@ -144,9 +144,5 @@ def exact_sample_indices(
     return jax.random.categorical(key, logits, axis=-1).astype(jnp.int32)
 
 
-# The jit entry points count their traces (eqx.debug.get_num_traces) so tests can show that
-# new probes of the same shape never recompile.
-_sample_tree_traced = eqx.debug.assert_max_traces(tree_sample_indices, max_traces=None)
-sample_tree_jit = eqx.filter_jit(_sample_tree_traced)
-_sample_exact_traced = eqx.debug.assert_max_traces(exact_sample_indices, max_traces=None)
-sample_exact_jit = eqx.filter_jit(_sample_exact_traced)
+sample_tree_jit = eqx.filter_jit(tree_sample_indices)
+sample_exact_jit = eqx.filter_jit(exact_sample_indices)

@@ -41,7 +41,7 @@ def check_motion_values(m: Motion, what: str) -> None:
             raise ValueError(f"{what}: non-finite values (NaN/inf) in {name}")
 
 
-def _encode(fm: FeatureMap, motion: Motion) -> np.ndarray:
+def encode_motion(fm: FeatureMap, motion: Motion) -> np.ndarray:
     """``fm.encode(motion)`` as NumPy, padded to a power-of-two length to share compilations.
 
     The observation channels of frame ``t`` depend only on frames ``≤ t`` (frame 0 on frame
@@ -71,7 +71,7 @@ def pose_vectors(fm: FeatureMap, motion: Motion) -> np.ndarray:
     if motion.n_frames < 2:
         raise ValueError(f"pose_vectors: a clip needs at least 2 frames, got {motion.n_frames}")
     check_motion_values(motion, "pose_vectors")
-    y = _encode(fm, motion)
+    y = encode_motion(fm, motion)
     return np.concatenate([y[1:], y[1:] - y[:-1]], axis=1)
 
 

@@ -290,8 +290,7 @@ def frame_terms_impl(
     return lax.fori_loop(0, n_blocks, body, carry)
 
 
-frame_terms_traced = eqx.debug.assert_max_traces(frame_terms_impl, max_traces=None)
-frame_terms_jit = eqx.filter_jit(frame_terms_traced)
+frame_terms_jit = eqx.filter_jit(frame_terms_impl)
 
 
 def frame_terms(
@@ -362,9 +361,9 @@ def frame_terms(
     Raises:
         ValueError: if ``Y`` is not ``(T, D)`` with the textons' ``D``, or contains NaN/inf
             (checked eagerly when ``Y`` is concrete, by ``eqx.error_if`` under a trace), or if
-            ``block_size``/``workers`` is not a positive int. (The per-texton algorithm, an
-            independent implementation of the same terms, is
-            ``mtex_jax.internal.frame_terms_per_texton``, for tests.)
+            ``block_size``/``workers`` is not a positive int. (The per-texton algorithm of
+            ``_scoring/frame_terms_ref.py`` is an independent implementation of the same
+            terms, the tests' reference.)
     """
     textons = check_texton("textons", textons)
     Y = check_obs("Y", Y, textons.obs_dim)

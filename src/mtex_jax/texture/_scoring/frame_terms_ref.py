@@ -93,8 +93,7 @@ def _all_terms_impl(
     return lax.map(one, textons, batch_size=chunk if chunk > 1 else None)
 
 
-all_terms_traced = eqx.debug.assert_max_traces(_all_terms_impl, max_traces=None)
-_all_terms_jit = eqx.filter_jit(all_terms_traced)
+_all_terms_jit = eqx.filter_jit(_all_terms_impl)
 
 
 def frame_terms_per_texton(
@@ -103,8 +102,7 @@ def frame_terms_per_texton(
     """:func:`frame_terms` by the per-texton algorithm: ``lax.map`` over textons,
     ``chunk_size`` per step; each texton projects all frames with one GEMM and forms
     ``B⁻¹(x_t − A1 x_{t−1} − A2 x_{t−2} − d)`` with three ``k × k`` GEMMs. Slower than the
-    blocked kernel; an independent implementation of the same formulas (a test reference,
-    exported through ``mtex_jax.internal``)."""
+    blocked kernel; an independent implementation of the same formulas (the tests' reference)."""
     textons = check_texton("textons", textons)
     Y = check_obs("Y", Y, textons.obs_dim)
     dyn, obs, _ = _all_terms_jit(

@@ -299,5 +299,4 @@ def student_frame_weights(tex: Texton, Y: Array, dof: float) -> Array:
     return jnp.concatenate([jnp.ones((*w.shape[:-1], 2), dtype), w.astype(dtype)], axis=-1)
 
 
-fit_texton_traced = eqx.debug.assert_max_traces(_fit_texton_impl, max_traces=None)
-_fit_texton_jit = eqx.filter_jit(fit_texton_traced)
+_fit_texton_jit = eqx.filter_jit(_fit_texton_impl)
