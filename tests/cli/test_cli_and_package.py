@@ -223,3 +223,12 @@ def test_wheel_ships_data_and_works_outside_the_source_tree(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     lines = r.stdout.split()
     assert lines[0].startswith(str(tmp_path / "site")) and lines[1] == "98"
+
+
+def test_a_state_dim_the_default_model_cannot_take_names_the_models_that_can(tmp_path, cmu_files):
+    """``--state-dim 4`` with the default tied model: one line, exit 2, and how to mend it."""
+    r = run_cli("learn", str(cmu_files[0]), "-o", str(tmp_path / "m.npz"), "--state-dim", "4")
+    assert r.returncode == 2
+    line = r.stderr.strip().splitlines()[-1]
+    assert line.startswith("mtex: error: learn: observation='tied' has state_dim = D")
+    assert "paper, residual" in line and "Traceback" not in r.stderr

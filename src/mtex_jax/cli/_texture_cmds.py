@@ -320,7 +320,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "learn",
         help="learn a motion texture from clips",
         description="Learn a motion texture (textons + transition matrix) from motion clips "
-        "by greedy initialisation and EM (MT §4).",
+        "by EM from an initial segmentation (clustered chunks by default, or the paper's "
+        "greedy one) with a dynamic-programming segmentation (MT §4).",
         epilog=RECIPE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -336,7 +337,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--state-dim",
         type=int_arg,
         default=None,
-        help="texton state dimension (default: chosen by BIC; the paper used 12)",
+        help="texton state dimension: the default tied and full models take D (the "
+        "observation's dimension); paper and residual choose it by BIC unless given (the "
+        "paper used 12)",
     )
     s.add_argument(
         "--observation",

@@ -9,7 +9,7 @@ from ._observation import observation_model
 from ._texton.checks import check_dof
 from ._texton.validate import check_config_limits
 
-# the paper's learning settings, the defaults before issue 16 (see LearnConfig.paper)
+# the paper's learning settings (see LearnConfig.paper)
 _PAPER: dict[str, Any] = dict(
     state_dim=12,
     observation="paper",

@@ -34,7 +34,7 @@ from .._noise.innovation_process import (
     segment_innovations,
 )
 from .._noise.residual_bank import PLAUSIBLE_TAIL, plausible_bank
-from .._observation import FullObservation, observation_model
+from .._observation import OBSERVATION_MODELS, FullObservation, observation_model
 from .._segmentation.segment import check_lengths
 from .._texton.select import choose_state_dim, n_params
 from .contacts import with_contacts
@@ -116,9 +116,11 @@ def check_data(
         )
     fixed = observation_model(config.observation).fixed_state_dim(dim)
     if fixed is not None and config.state_dim not in (None, fixed):
+        free = [n for n, m in OBSERVATION_MODELS.items() if m.fixed_state_dim(dim) is None]
         raise ValueError(
             f"learn: observation={config.observation!r} has state_dim = D = {dim}, "
-            f"got {config.state_dim}"
+            f"got {config.state_dim}; leave state_dim unset, or choose an observation model "
+            f"whose state dimension is free: {', '.join(free)}"
         )
     return ys, fm, motions
 

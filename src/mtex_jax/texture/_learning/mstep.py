@@ -51,7 +51,7 @@ def _fit_all_impl(
     again one GEMM per statistic. The chunks go one after the other (``lax.scan``), their sums
     added into their texton's: memory holds one chunk's slabs, and the work is
     ``O(total frames)``, not ``O(N_t × frames)``. (Per-segment GEMMs batched over the
-    segments of mixed textons, the earlier scheme, ran at a fraction of the GEMM rate.)
+    segments of mixed textons, the alternative, run at a fraction of the GEMM rate.)
 
     With Student-t textons (``opts.dof``) each frame's dynamics term is weighted by its t
     weight under a previous fit (IRLS, as in :func:`~._fit.fit_texton`). Without ``prev``:

@@ -84,9 +84,12 @@ class ObservationModel:
         """``dof`` checked (:func:`check_dof`) and allowed for this model."""
         dof = check_dof(dof, where=where)
         if dof is not None and not self.student_t:
+            from . import OBSERVATION_MODELS
+
+            takes = [n for n, m in OBSERVATION_MODELS.items() if m.student_t]
             raise ValueError(
-                f"Student-t innovations ({where}={dof:g}) need observation='full', "
-                f"got {self.name!r}"
+                f"Student-t innovations ({where}={dof:g}) need an observation model that "
+                f"takes them ({', '.join(takes)}), got {self.name!r}"
             )
         return dof
 

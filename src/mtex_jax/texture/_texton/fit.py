@@ -100,8 +100,8 @@ def texton_from_stats(
         q_floor: absolute floor added to ``Q`` and ``S0`` (units of ``x²`` = ``y²``), ``> 0``.
         rho_max: optional bound on the companion spectral radius, ``> 0``.
         init_prior_weight: shrinkage pseudo-count ``κ >= 0`` for ``(m0, S0)``.
-        observation: ``"paper"``, ``"residual"`` or ``"full"`` (see :class:`Texton`;
-            ``"full"`` needs ``k = D``).
+        observation: ``"paper"``, ``"residual"``, ``"full"`` or ``"tied"`` (see
+            :class:`Texton`; ``"full"`` and ``"tied"`` need ``k = D``).
         sigma2_floor: floor of the residual innovation variance ``s_r²``.
 
     Returns:
@@ -236,13 +236,15 @@ def fit_texton(
         sigma2_floor: absolute floor of ``σ²`` (units of ``y²``).
         rho_max: optional bound on the spectral radius of ``[[A1, A2], [I, 0]]``.
         init_prior_weight: shrinkage pseudo-count of the initial-state Gaussian.
-        observation: the observation model, ``"paper"``, ``"residual"`` or ``"full"``
-            (``"full"`` needs ``state_dim = D``); see :class:`Texton`.
+        observation: the observation model, ``"paper"``, ``"residual"``, ``"full"`` or
+            ``"tied"`` (the last two need ``state_dim = D``; one tied texton is a full one);
+            see :class:`Texton`.
         dof: ``None`` (Gaussian innovations) or the degrees of freedom ``ν > 0`` of Student-t
-            innovations (``observation="full"`` only). The t is fitted by 10 steps of
-            iteratively reweighted least squares from the Gaussian fit: frame ``t``'s
-            dynamics term gets the weight ``w_t = (ν + k) / (ν + q_t)`` (``q_t`` its squared
-            Mahalanobis innovation under the current fit) and the weighted closed form
+            innovations (the full-dimensional models, ``"full"`` and ``"tied"``). The t is
+            fitted by 10 steps of iteratively reweighted least squares from the Gaussian fit:
+            frame ``t``'s dynamics term gets the weight ``w_t = (ν + k) / (ν + q_t)``
+            (``q_t`` its squared Mahalanobis innovation under the current fit) and the weighted
+            closed form
             above is solved again, with ``Σ w`` in place of ``N`` (the parameter-expanded EM
             of the t, whose fixed point is the maximum-likelihood fit, where ``Σ w = N``).
 

@@ -77,7 +77,8 @@ def choose_state_dim(
 
     Args:
         ys: observation sequences ``(T_s, D)`` (each at least 3 frames).
-        observation: ``"paper"`` or ``"residual"`` (``"full"`` has ``k = D``).
+        observation: ``"paper"`` or ``"residual"`` (``"full"`` and ``"tied"`` have
+            ``k = D``).
         candidates: the ``k`` to try (default: 2, 4, 6, 8, 10, 12, 16, 20, 24, 32, … below
             ``D``, and ``D`` itself: no residual, the ``"full"`` texton).
         ridge: relative ridge of the AR(2) regression, as in :func:`fit_texton`.

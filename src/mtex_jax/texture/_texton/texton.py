@@ -19,9 +19,13 @@ the state subspace, the residual ``r_t = (I − C Cᵀ)(y_t − μ)``, is scored
   residual subspace (``res_a = (a₁, a₂)``, ``res_s2 = s_r²``). The residual of smooth motion
   is smooth, so its one-step prediction error is far smaller than its variance;
 * ``"full"``: ``k = D`` (no residual): the texton is a full-covariance AR(2) on ``y`` and the
-  texture an autoregressive hidden semi-Markov model.
+  texture an autoregressive hidden semi-Markov model;
+* ``"tied"`` (the default of :class:`~mtex_jax.texture.LearnConfig`): full textons whose
+  dynamics are shared by the vocabulary, each with its own offset and shrunk covariance
+  (design §10.10). One texton is scored as a ``"full"`` one; only the vocabulary's M-step
+  differs.
 
-For ``"paper"`` and ``"full"`` ``res_a = 0`` and ``res_s2 = σ²``.
+For ``"paper"``, ``"full"`` and ``"tied"`` ``res_a = 0`` and ``res_s2 = σ²``.
 
 A ``"full"`` texton may have Student-t dynamics innovations (static :attr:`Texton.dof` ``= ν``):
 ``x_{t+1} = A1 x_t + A2 x_{t−1} + d + ε_t``, ``ε_t ~ t_ν(0, B Bᵀ)``. Real capture has rare
@@ -89,7 +93,8 @@ class Texton(eqx.Module):
         res_a: ``(*batch, 2)`` AR(2) coefficients ``(a₁, a₂)`` of the residual
             (``"residual"`` observation model; 0 otherwise).
         res_s2: ``(*batch,)`` residual innovation variance ``s_r²`` (``σ²`` otherwise).
-        observation: ``"paper"``, ``"residual"`` or ``"full"`` (static; see the module doc).
+        observation: ``"paper"``, ``"residual"``, ``"full"`` or ``"tied"`` (static; see the
+            module doc).
         dof: degrees of freedom ``ν`` of Student-t dynamics innovations (static, ``"full"``
             textons only): ``x_t = A1 x_{t−1} + A2 x_{t−2} + d + ε_t`` with
             ``ε_t ~ t_ν(0, Q)``, a scale mixture ``ε_t = B v_t / √g_t``, ``v_t ~ N(0, I)``,
