@@ -36,7 +36,7 @@ def test_evaluate_on_cmu_clips(cmu_model, cmu_files, tmp_path, capsys):
             "--synth",
             "2",
             "--seconds",
-            "5",
+            "10",
             "-o",
             str(out),
         ]
@@ -61,6 +61,9 @@ def test_evaluate_on_cmu_clips(cmu_model, cmu_files, tmp_path, capsys):
     assert real["speed_ratio"] == 1.0  # the floor row
     assert (tmp_path / "report.png").stat().st_size > 10_000
     assert "AR(2)" in text and "skating" in text
+    two = rep["two_sample"]  # 10 synthesised windows of 2 s against the held-out clips'
+    assert 0.0 <= two["auc"] <= 1.0 and len(two["fold_aucs"]) == 5 and two["n_generated"] == 10
+    assert two["reference_auc"] is not None and "training against held out" in text
 
 
 @pytest.mark.slow  # the default run's budget (about 15 min); CI runs it after
@@ -88,6 +91,7 @@ def test_evaluate_on_embedded_data(tmp_path, capsys):
     text = capsys.readouterr().out
     assert code == 0, text
     assert "no --train clips" in text
+    assert "not run: two_sample_auc: the real clips give 1 window of 2.0 s" in text  # 77 frames
     assert (tmp_path / "d.png").exists()
 
 

@@ -1,6 +1,6 @@
 """Motion quality, measured: held-out likelihood and prediction against baselines, realism of
 joint speed/acceleration/jerk distributions, foot contacts, skating and floor penetration,
-transitions, and novelty (design §10.4).
+transitions, novelty, and a classifier two-sample test (design §10.4).
 """
 
 # --- likelihood baselines and prediction (baselines module) ---
@@ -41,6 +41,11 @@ from ._transitions import (
     jump_p99 as jump_p99,
     transitions as transitions,
 )
+from ._two_sample import (
+    TwoSampleResult as TwoSampleResult,
+    two_sample_auc as two_sample_auc,
+    window_features as window_features,
+)
 
 __all__ = [
     "CopyResult",
@@ -49,6 +54,7 @@ __all__ = [
     "NoveltyResult",
     "RealismResult",
     "TransitionResult",
+    "TwoSampleResult",
     "boundary_jumps",
     "constant_velocity",
     "copying",
@@ -68,5 +74,7 @@ __all__ = [
     "successor_array",
     "texture_predict",
     "transitions",
+    "two_sample_auc",
     "wasserstein_1d",
+    "window_features",
 ]
