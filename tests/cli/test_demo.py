@@ -55,6 +55,10 @@ def test_demo_pipeline_writes_every_file(tmp_path, capsys):
     for key in ("boundary_share_above_p99", "novelty_median", "copy_fraction"):
         assert key in report["motion"]["synthesised"]
     assert set(report["step_seconds"]) >= {"learn (EM + selection)", "quality report"}
+    # a 3 s dance is one 2 s window, too few for 5 folds: the report says so (the full demo's
+    # 20 s dance gives ten)
+    assert "the generated clips give 1 window" in report["two_sample"]["not_run"]
+    assert "two-sample test not run" in text
 
     # the vocabulary of the demo's texture: printed, and drawn as a gallery of samples
     assert main(["textons", str(out / "texture.npz"), "-o", str(tmp_path / "voc.png")]) == 0

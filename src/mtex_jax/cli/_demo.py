@@ -242,6 +242,23 @@ def run_demo(
         return rows | judge.real_rows()
 
     rows = steps.run("quality report", quality)
+
+    def two_sample() -> dict[str, Any]:
+        # can a classifier tell the new dance from the held-out clips? (design §10.4)
+        from ..metrics import two_sample_auc
+
+        try:
+            r = two_sample_auc(
+                [m.resample(FPS) for m in held],
+                [dance],
+                reference=[m.resample(FPS) for m in train],
+                seed=seed,
+            )
+        except (ImportError, ValueError) as e:
+            return {"not_run": str(e)}
+        return r.as_dict()
+
+    two = steps.run("two-sample test", two_sample)
     report = {
         "training": train_names,
         "held_out": held_names,
@@ -251,6 +268,7 @@ def run_demo(
         "texture": stats,
         "path": np.asarray(syn.path).tolist(),
         "motion": rows,
+        "two_sample": two,
         "step_seconds": steps.times,
         "step_cpu_seconds": steps.cpu,
     }
@@ -260,6 +278,13 @@ def run_demo(
         a, b = rows["synthesised"].get(key), rows["real (held out)"].get(key)
         fmt = lambda x: "—" if x is None else f"{x:.3f}"
         say(f"  {label:40s} {fmt(a):>8s}   real {fmt(b):>8s}")
+    if "auc" in two:
+        say(
+            f"  {'classifier AUC, new salsa vs held out (0.5: alike)':40s} {two['auc']:8.3f}   "
+            f"real {two['reference_auc']:8.3f} (training vs held out)"
+        )
+    else:
+        say(f"  two-sample test not run: {two['not_run']}")
     say("files:")
     for what, p in files.items():
         say(f"  {what:10s} {p}")
