@@ -280,8 +280,8 @@ def run_demo(
         say(f"  {label:40s} {fmt(a):>8s}   real {fmt(b):>8s}")
     if "auc" in two:
         say(
-            f"  {'classifier AUC, new salsa vs held out (0.5: alike)':40s} {two['auc']:8.3f}   "
-            f"real {two['reference_auc']:8.3f} (training vs held out)"
+            f"  {'classifier two-sample AUC (0.5: alike)':40s} {two['auc']:8.3f}   "
+            f"real {two['reference_auc']:8.3f}  (real: the training clips against the held out)"
         )
     else:
         say(f"  two-sample test not run: {two['not_run']}")
