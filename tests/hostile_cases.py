@@ -860,6 +860,13 @@ _DM: list[tuple[Any, ...]] = [
         r"invalid number in JSON",
         True,
     ),
+    (
+        "int-401-digits",  # parses as a Python int, which no float holds
+        lambda t: _dm_first_value(t, "9" * 401),
+        ValueError,
+        r"a 401-digit integer in frame 0 exceeds",
+        True,
+    ),
     ("NaN", lambda t: _dm_first_value(t, "NaN"), ValueError, r"non-finite|NaN", False),
     (
         "Infinity",

@@ -97,17 +97,27 @@ def test_deepmimic_malformed_inputs(tmp_path):
     baddt = [list(f) for f in frames]
     baddt[1][0] = -0.1
     full = _frames_text(frames)
+    bigint = [list(f) for f in frames]
+    bigint[2][7] = int("9" * 401)  # no float holds it
     checks = [
         # (path, expected 1-based line, fragment)
         (case("short", short), 7, "has 41 values"),
         (case("nonnum", nonnum), 6, "non-numeric"),
         (case("badq", badq), 8, "not a rotation"),
         (case("baddt", baddt), 6, "inconsistent frame time"),
+        (case("bigint", bigint), 7, "a 401-digit integer in frame 2 exceeds"),
+        (case("denormal", text=full.replace("0.85", "1e-320", 1)), None, None),
+        (case("negzero", text=full.replace("0.85", "-0.0", 1)), None, None),
+        (case("nan", text=full.replace("0.85", "NaN", 1)), 5, "non-finite value in frame 0"),
+        (case("nanlower", text=full.replace("0.85", "nan", 1)), 5, "invalid JSON"),
         (case("truncated", text=full[: len(full) // 2]), None, "invalid JSON"),
         (case("zero", text='{"Loop": "wrap", "Frames": []}'), 1, "zero frames"),
         (case("nota", text=json.dumps({"Loop": "wrap"})), 1, "no 'Frames'"),
     ]
     for path, line, frag in checks:
+        if frag is None:  # a denormal or a negative zero is a number like any other
+            assert mj.read_deepmimic(path).n_frames == 4
+            continue
         with pytest.raises(ValueError) as ei:
             mj.read_deepmimic(path)
         msg = str(ei.value)

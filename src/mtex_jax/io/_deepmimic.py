@@ -170,6 +170,11 @@ def parse_deepmimic(text: str, source: str = "<string>", *, max_frames: int = MA
         for v in fr:
             if isinstance(v, bool) or not isinstance(v, int | float):
                 raise ValueError(f"{source}:{where(k)}: non-numeric value {v!r} in frame {k}")
+            if isinstance(v, int) and abs(v) > MAX_ABS_VALUE:  # also no float holds it
+                raise ValueError(
+                    f"{source}:{where(k)}: a {len(str(abs(v)))}-digit integer in frame {k} "
+                    f"exceeds {MAX_ABS_VALUE:g} in magnitude"
+                )
     data = np.asarray(frames, dtype=np.float64)
     bad = ~np.all(np.isfinite(data), axis=1)
     if bad.any():
