@@ -156,7 +156,7 @@ def test_student_config_checks():
             LearnConfig(observation="full", dof=bad)
     assert LearnConfig().dof == 4.0 and LearnConfig.paper().dof is None
     rng = np.random.default_rng(5)
-    with pytest.raises(ValueError, match="observation='full'"):
+    with pytest.raises(ValueError, match=r"model that takes them \(full, tied\), got 'paper'"):
         fit_texton(jnp.asarray(_heavy(rng, 100, 3)), state_dim=2, dof=4.0)
     tex = fit_texton(jnp.asarray(_heavy(rng, 100, 3)), state_dim=3, observation="full")
     with pytest.raises(ValueError, match="dof"):

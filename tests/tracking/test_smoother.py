@@ -147,7 +147,9 @@ def test_map_solves_the_dense_objective(texture, clip, problem):
     fr = eqx.tree_at(lambda f: f.tx, fr, TexturePrior().whitened(texture.textons, jnp.float64))
     seg = _single(1, T)
     n = jnp.asarray(T)
-    X_map, _ = _solve(fr, TexturePrior(), seg, X0, jnp.zeros((T,), bool), None, n, 60)
+    # the solve's own fixed point is the subject, not its speed: enough steps to reach it (from
+    # this start it needed 60–120 with the packages of 2026-12; the tracker's rounds use 12)
+    X_map, _ = _solve(fr, TexturePrior(), seg, X0, jnp.zeros((T,), bool), None, n, 200)
     Y0 = body.observations(X0)
     keep = fr.root_w == 0
     rep = fr.reproj
