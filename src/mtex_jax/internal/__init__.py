@@ -2,7 +2,7 @@
 ``optimistix.internal``).
 
 Nothing here is part of the stable API. It holds the pieces of constrained texton synthesis
-(design §6.2) that a downstream library reuses to pose its own constrained problems on a
+(design §5.3) that a downstream library reuses to pose its own constrained problems on a
 texton: the noise of a texton, the masked least-squares problem, its normal equations, their
 banded solve, and the observation of the solved states. Nothing in the package imports this
 module, and tests count traces and spy on kernels themselves.
