@@ -426,8 +426,8 @@ def main() -> None:
     )
     res["implicit"] = dict(
         learn_s=t_imp,
-        examples=int(np.asarray(model.codes).shape[0]),
-        components=model.n_components,
+        examples=int(np.asarray(model.database.codes).shape[0]),
+        components=model.database.n_components,
         explained_variance=model.explained_variance,
         paper_explained_variance=paper_model.explained_variance,
     )
@@ -439,12 +439,12 @@ def main() -> None:
     )
     for name, mdl, sampler, setting in runs:
         syn_cfg = mj.implicit.SynthesisConfig.paper() if setting == "paper" else None
-        succ = metrics.successor_array(mdl.clip_index, mdl.frame_index)
+        succ = metrics.successor_array(mdl.database.clip_index, mdl.database.frame_index)
         motions, idx = [], []
         for j, k in enumerate(keys):
             h = held30[j % len(held30)]
             s0 = 30 + 97 * (j // len(held30))
-            start = h[s0 : s0 + mdl.window + 1]
+            start = h[s0 : s0 + mdl.database.window + 1]
             kw: dict[str, Any] = dict(sampler=sampler, config=syn_cfg)
             motions.append(mdl.synthesize(k, start, n30, beta=1.0, **kw))
             idx.append(np.asarray(mdl.synthesize_poses(k, start, n30, 1.0, **kw)[1]))

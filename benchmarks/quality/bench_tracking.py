@@ -487,14 +487,14 @@ def main() -> None:
     t0 = time.perf_counter()
     imp = mj.implicit.learn(train, window=WINDOW, recent_weight=0.0)
     t_imp = time.perf_counter() - t0
-    log(f"  {int(np.asarray(imp.codes).shape[0])} windows in {t_imp:.1f} s")
+    log(f"  {int(np.asarray(imp.database.codes).shape[0])} windows in {t_imp:.1f} s")
     res["priors"] = dict(
         texture=dict(learn_s=t_tex, textons=tex.n_textons, fps=float(tex.feature_map.fps)),
         implicit=dict(
             learn_s=t_imp,
-            windows=int(np.asarray(imp.codes).shape[0]),
-            components=imp.n_components,
-            window=imp.window,
+            windows=int(np.asarray(imp.database.codes).shape[0]),
+            components=imp.database.n_components,
+            window=imp.database.window,
             recent_weight=0.0,
         ),
     )

@@ -109,14 +109,14 @@ def run(
             info[str(dict(lrn))] = m.summary() | {"learn_s": time.perf_counter() - t0}
         model = models[key_l]
         cfg = SynthesisConfig(**syn)
-        succ = metrics.successor_array(model.clip_index, model.frame_index)
+        succ = metrics.successor_array(model.database.clip_index, model.database.frame_index)
         motions, idx = [], []
         t0 = time.perf_counter()
         for j, k in enumerate(keys):
             h = held30[j % len(held30)]
             s0 = 30 + 97 * (j // len(held30))  # as bench_quality.py (8 syntheses)
-            s0 = s0 % max(h.n_frames - model.window - 1, 1)  # more syntheses: wrap
-            start = h[s0 : s0 + model.window + 1]
+            s0 = s0 % max(h.n_frames - model.database.window - 1, 1)  # more syntheses: wrap
+            start = h[s0 : s0 + model.database.window + 1]
             motions.append(model.synthesize(k, start, n30, beta=1.0, sampler=sampler, config=cfg))
             idx.append(
                 np.asarray(

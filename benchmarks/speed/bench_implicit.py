@@ -53,19 +53,19 @@ from mtex_jax.tracking import make_problem, track
 @eqx.filter_jit
 def _tree(model, key, probes, beta):
     idx = tree_sample_indices(model.database, key, probes, beta, "uniform")
-    return idx, model.successors[idx]
+    return idx, model.database.successors[idx]
 
 
 @eqx.filter_jit
 def _tree_weighted(model, key, probes, beta):
     idx = tree_sample_indices(model.database, key, probes, beta, "weighted")
-    return idx, model.successors[idx]
+    return idx, model.database.successors[idx]
 
 
 @eqx.filter_jit
 def _exact(model, key, probes, beta):
     idx = exact_sample_indices(model.database, key, probes, beta)
-    return idx, model.successors[idx]
+    return idx, model.database.successors[idx]
 
 
 def _time(fn, reps: int) -> tuple[float, float]:
@@ -83,7 +83,7 @@ def _time(fn, reps: int) -> tuple[float, float]:
 
 def _mean_d2_all(model: ImplicitModel, probes) -> tuple[float, float]:
     """Average and nearest-neighbour squared distance of the probes to the database."""
-    w = model.windows
+    w = model.database.windows
     tot, nn = 0.0, []
     for chunk in np.array_split(np.arange(probes.shape[0]), max(1, probes.shape[0] // 100)):
         p = probes[chunk]
@@ -143,7 +143,7 @@ def bench_speed(salsa30, salsa120, quick: bool) -> list[dict]:
 
         c_tree, t_tree = _time(call(_tree), 50)
         c_w, t_w = _time(call(_tree_weighted), 50)
-        reps_exact = 10 if model.n_examples < 20000 else 5
+        reps_exact = 10 if model.database.n_examples < 20000 else 5
         c_ex, t_ex = _time(call(_exact), reps_exact)
         _, t_api = _time(call(lambda m, k, p, b: m.sample(k, p, 0.1)[1]), 20)
         # the synthesis search with the default options (issue 18: K = 16 walks, exact leaf,
@@ -162,11 +162,11 @@ def bench_speed(salsa30, salsa120, quick: bool) -> list[dict]:
         s = model.summary()
         row = {
             "database": label,
-            "n": model.n_examples,
-            "b": model.n_components,
+            "n": model.database.n_examples,
+            "b": model.database.n_components,
             "explained_variance": model.explained_variance,
-            "leaf_max": model.leaf_max,
-            "window_dim": model.window_dim,
+            "leaf_max": model.database.leaf_max,
+            "window_dim": model.database.window_dim,
             "nonempty_leaves": s["nonempty_leaves"],
             "build_s": build,
             "tree_uniform_s": t_tree,

@@ -32,8 +32,8 @@ def train(salsa30_chunks, salsa30_held_out):
 @pytest.fixture(scope="module")
 def model(salsa30_model, train) -> ImplicitModel:
     """The default model of ``train`` with ``WINDOW``-frame windows."""
-    assert salsa30_model.window == WINDOW
-    assert salsa30_model.n_examples == sum(m.n_frames - 1 - WINDOW for m in train)
+    assert salsa30_model.database.window == WINDOW
+    assert salsa30_model.database.n_examples == sum(m.n_frames - 1 - WINDOW for m in train)
     return salsa30_model
 
 
@@ -43,31 +43,31 @@ def probes(model, salsa30):
 
 
 def _mean_d2_to_database(model: ImplicitModel, probes) -> float:
-    w = model.windows
+    w = model.database.windows
     d2 = jnp.sum(probes**2, 1)[:, None] + jnp.sum(w**2, 1)[None] - 2 * probes @ w.T
     return float(jnp.mean(d2))
 
 
 # --------------------------------------------------------------------------- database
 def test_build_sizes_b_and_explained_variance(model, train):
-    n = model.n_examples
+    n = model.database.n_examples
     assert n == sum(m.n_frames - 1 - WINDOW for m in train)
-    assert model.clip_sizes == tuple(m.n_frames - 1 - WINDOW for m in train)
-    assert model.pose_dim == 2 * model.feature_map.dim
-    assert model.window_dim == WINDOW * model.pose_dim
-    assert model.n_components == min(math.floor(math.log2(n)), model.window_dim)
+    assert model.database.clip_sizes == tuple(m.n_frames - 1 - WINDOW for m in train)
+    assert model.database.pose_dim == 2 * model.feature_map.dim
+    assert model.database.window_dim == WINDOW * model.database.pose_dim
+    assert model.database.n_components == min(math.floor(math.log2(n)), model.database.window_dim)
     s = model.summary()
-    assert s["n_components"] == model.n_components
+    assert s["n_components"] == model.database.n_components
     # explained variance = variance of the b coefficients / total variance of the windows
-    w = np.asarray(model.windows)
-    c = np.asarray(model.sorted_coeffs)
+    w = np.asarray(model.database.windows)
+    c = np.asarray(model.database.sorted_coeffs)
     ratio = c.var(axis=0).sum() / w.var(axis=0).sum()
     assert 0.0 < model.explained_variance <= 1.0
     np.testing.assert_allclose(model.explained_variance, ratio, rtol=1e-6)
     # the principal directions are orthonormal and σ_l decreasing
-    u = np.asarray(model.basis)
-    np.testing.assert_allclose(u.T @ u, np.eye(model.n_components), atol=1e-8)
-    sig = np.asarray(model.sigma)
+    u = np.asarray(model.database.basis)
+    np.testing.assert_allclose(u.T @ u, np.eye(model.database.n_components), atol=1e-8)
+    sig = np.asarray(model.database.sigma)
     assert np.all(np.diff(sig) <= 1e-9)
     np.testing.assert_allclose(sig, c.std(axis=0), rtol=1e-8)
 
@@ -75,30 +75,30 @@ def test_build_sizes_b_and_explained_variance(model, train):
 def test_max_components_caps_b(model, train):
     fm = model.feature_map
     m = mj.implicit.learn(train[:3], 5, max_components=4, feature_map=fm)
-    assert m.n_components == 4
+    assert m.database.n_components == 4
     m2 = mj.implicit.learn(train[:3], 5, n_components=7, feature_map=fm)
-    assert m2.n_components == 7
+    assert m2.database.n_components == 7
     assert m2.explained_variance > m.explained_variance
 
 
 def test_windows_are_per_clip_with_successors(model, train):
     """Each database window equals the probe window of its own clip; successors follow it."""
     start = 0
-    gamma = np.asarray(model.gamma)
+    gamma = np.asarray(model.database.gamma)
     for c, clip in enumerate(train[:3]):
-        k = model.clip_sizes[c]
+        k = model.database.clip_sizes[c]
         rows = slice(start, start + k)
         probe = np.asarray(model.windows_of(clip))
-        np.testing.assert_allclose(np.asarray(model.windows[rows]), probe[:k], atol=1e-12)
+        np.testing.assert_allclose(np.asarray(model.database.windows[rows]), probe[:k], atol=1e-12)
         psi = pose_vectors(model.feature_map, clip)
-        fi = np.asarray(model.frame_index[rows])
+        fi = np.asarray(model.database.frame_index[rows])
         np.testing.assert_array_equal(fi, np.arange(k) + WINDOW)
-        np.testing.assert_allclose(np.asarray(model.successors[rows]), psi[fi], atol=1e-12)
+        np.testing.assert_allclose(np.asarray(model.database.successors[rows]), psi[fi], atol=1e-12)
         # the newest pose of window j is frame frame_index[j]  (ψ row frame − 1)
         # (model coordinates weigh the newest pose vector by √(1 + recent_weight))
-        newest = probe[:k].reshape(k, WINDOW, -1)[:, -1] * gamma / np.sqrt(1 + model.recent_weight)
+        newest = probe[:k].reshape(k, WINDOW, -1)[:, -1] * gamma / np.sqrt(1 + model.database.recent_weight)
         np.testing.assert_allclose(newest, psi[fi - 1], atol=1e-10)
-        assert np.all(np.asarray(model.clip_index[rows]) == c)
+        assert np.all(np.asarray(model.database.clip_index[rows]) == c)
         start += k
 
 
@@ -116,34 +116,34 @@ def test_padded_encoding_equals_plain_encoding(model, salsa30):
 def test_gamma_is_database_std(model, train):
     """pose_std is the database std; with the paper's weighting γ is that std too."""
     allpsi = np.concatenate([pose_vectors(model.feature_map, m) for m in train])
-    np.testing.assert_allclose(np.asarray(model.pose_std), allpsi.std(axis=0), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(model.database.pose_std), allpsi.std(axis=0), rtol=1e-10)
     paper = mj.implicit.learn(train[:4], WINDOW, weighting="channel")
     psi4 = np.concatenate([pose_vectors(paper.feature_map, m) for m in train[:4]])
-    np.testing.assert_allclose(np.asarray(paper.gamma), psi4.std(axis=0), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(paper.database.gamma), psi4.std(axis=0), rtol=1e-10)
 
 
 # --------------------------------------------------------------------------- tree
 def test_every_example_sits_in_the_leaf_of_its_sign_code(model):
-    b = model.n_components
-    codes = np.asarray(sign_codes(model.coefficients(model.windows)))
-    np.testing.assert_array_equal(codes, np.asarray(model.codes))
+    b = model.database.n_components
+    codes = np.asarray(sign_codes(model.coefficients(model.database.windows)))
+    np.testing.assert_array_equal(codes, np.asarray(model.database.codes))
     # sign code bits from the coefficients, computed independently
-    c = np.asarray(model.coefficients(model.windows))
+    c = np.asarray(model.coefficients(model.database.windows))
     bits = (c > 0).astype(np.int64)
     np.testing.assert_array_equal(codes, bits @ (1 << np.arange(b - 1, -1, -1)))
     lo, hi = model.node_range(b, jnp.asarray(codes))
-    pos = np.empty(model.n_examples, dtype=np.int64)
-    pos[np.asarray(model.order)] = np.arange(model.n_examples)
+    pos = np.empty(model.database.n_examples, dtype=np.int64)
+    pos[np.asarray(model.database.order)] = np.arange(model.database.n_examples)
     assert np.all((np.asarray(lo) <= pos) & (pos < np.asarray(hi)))
 
 
 def test_node_ranges_are_exact(model):
     """Every node's searchsorted range holds exactly the examples with that code prefix."""
-    b = model.n_components
-    codes = np.asarray(model.codes)
-    order = np.asarray(model.order)
-    assert np.all(np.diff(np.asarray(model.sorted_codes, dtype=np.int64)) >= 0)
-    np.testing.assert_array_equal(np.asarray(model.sorted_codes), codes[order])
+    b = model.database.n_components
+    codes = np.asarray(model.database.codes)
+    order = np.asarray(model.database.order)
+    assert np.all(np.diff(np.asarray(model.database.sorted_codes, dtype=np.int64)) >= 0)
+    np.testing.assert_array_equal(np.asarray(model.database.sorted_codes), codes[order])
     rng = np.random.default_rng(0)
     for level in range(b + 1):
         n_nodes = 1 << level
@@ -153,18 +153,18 @@ def test_node_ranges_are_exact(model):
             mask = (codes >> (b - level)) == p  # brute force over the unsorted examples
             assert z - a == mask.sum()
             assert set(order[a:z].tolist()) == set(np.nonzero(mask)[0].tolist())
-    assert model.leaf_max == np.bincount(codes).max()
+    assert model.database.leaf_max == np.bincount(codes).max()
 
 
 # --------------------------------------------------------------------------- sampling
 def test_very_high_beta_takes_each_branch_with_probability_half(model, probes):
     """At β → ∞ the walk is uniform over branches: P(right) = ½ unless a child is empty."""
-    b = model.n_components
+    b = model.database.n_components
     reps = 100
     keys = jax.random.split(jax.random.PRNGKey(0), reps)
     idx = np.concatenate([np.asarray(model.sample(k, probes, 1e12)[0]) for k in keys])
-    leaf = np.asarray(model.codes)[idx]
-    all_codes = np.asarray(model.codes)
+    leaf = np.asarray(model.database.codes)[idx]
+    all_codes = np.asarray(model.database.codes)
     checked = forced = 0
     for level in range(b):
         node = leaf >> (b - level)
@@ -217,22 +217,22 @@ def test_tree_within_factor_of_exact_sampler(model, probes):
 def test_exact_sampler_matches_its_distribution():
     """Empirical frequencies of sample_exact match softmax(−d²/2β) (IP Eq. 3)."""
     m = mj.implicit.learn(mj.load_example("walk"), 3)
-    probe = m.windows[5] + 0.3
-    d2 = np.asarray(jnp.sum((m.windows - probe) ** 2, axis=1))
+    probe = m.database.windows[5] + 0.3
+    d2 = np.asarray(jnp.sum((m.database.windows - probe) ** 2, axis=1))
     beta = float(np.sort(d2)[5] - d2.min()) / 2  # spread over a handful of examples
     p = np.exp(-(d2 - d2.min()) / (2 * beta))
     p /= p.sum()
     n = 40000
     idx, succ = m.sample_exact(
-        jax.random.PRNGKey(3), jnp.broadcast_to(probe, (n, m.window_dim)), beta
+        jax.random.PRNGKey(3), jnp.broadcast_to(probe, (n, m.database.window_dim)), beta
     )
-    freq = np.bincount(np.asarray(idx), minlength=m.n_examples) / n
+    freq = np.bincount(np.asarray(idx), minlength=m.database.n_examples) / n
     big = p > 0.01
     assert big.sum() >= 3
     tol = 5 * np.sqrt(p[big] * (1 - p[big]) / n)  # 5 binomial standard deviations
     assert np.all(np.abs(freq[big] - p[big]) < tol), (freq[big], p[big])
     assert freq[~big].sum() < p[~big].sum() + 0.01
-    np.testing.assert_array_equal(np.asarray(succ), np.asarray(m.successors)[np.asarray(idx)])
+    np.testing.assert_array_equal(np.asarray(succ), np.asarray(m.database.successors)[np.asarray(idx)])
 
 
 def test_importance_resampled_tree_tends_to_the_exact_sampler():
@@ -240,17 +240,17 @@ def test_importance_resampled_tree_tends_to_the_exact_sampler():
     proposal probability. On a small database its distribution is close to the exact one for
     large K, and far closer than the plain walk (K = 1)."""
     m = mj.implicit.learn(mj.load_example("walk"), 3)
-    probe = m.windows[5] + 0.3
-    d2 = np.asarray(jnp.sum((m.windows - probe) ** 2, axis=1))
+    probe = m.database.windows[5] + 0.3
+    d2 = np.asarray(jnp.sum((m.database.windows - probe) ** 2, axis=1))
     beta = float(np.sort(d2)[5] - d2.min()) / 2
     p = np.exp(-(d2 - d2.min()) / (2 * beta))
     p /= p.sum()
     n = 4000
-    probes = jnp.broadcast_to(probe, (n, m.window_dim))
+    probes = jnp.broadcast_to(probe, (n, m.database.window_dim))
 
     def tv(k: int) -> float:  # total-variation distance of the empirical law from the exact one
         idx, _ = m.sample(jax.random.PRNGKey(k), probes, beta, candidates=k)
-        freq = np.bincount(np.asarray(idx), minlength=m.n_examples) / n
+        freq = np.bincount(np.asarray(idx), minlength=m.database.n_examples) / n
         return 0.5 * float(np.abs(freq - p).sum())
 
     tv1, tv64 = tv(1), tv(64)  # measured ≈ 0.52 and ≈ 0.03
@@ -262,23 +262,23 @@ def test_low_beta_tree_finds_own_leaf_and_weighted_finds_self(model):
     """A database window as probe at tiny β: the walk ends in its own leaf; the weighted leaf
     rule then picks the example itself (coefficient distance 0)."""
     rng = np.random.default_rng(4)
-    sel = rng.choice(model.n_examples, 200, replace=False)
-    probes = model.windows[sel]
+    sel = rng.choice(model.database.n_examples, 200, replace=False)
+    probes = model.database.windows[sel]
     iu, su = model.sample(jax.random.PRNGKey(5), probes, 1e-9)
     np.testing.assert_array_equal(
-        np.asarray(model.codes)[np.asarray(iu)], np.asarray(model.codes)[sel]
+        np.asarray(model.database.codes)[np.asarray(iu)], np.asarray(model.database.codes)[sel]
     )
     iw, _ = model.sample(jax.random.PRNGKey(6), probes, 1e-9, leaf="weighted")
     np.testing.assert_array_equal(np.asarray(iw), sel)
-    np.testing.assert_array_equal(np.asarray(su), np.asarray(model.successors)[np.asarray(iu)])
+    np.testing.assert_array_equal(np.asarray(su), np.asarray(model.database.successors)[np.asarray(iu)])
 
 
 def test_single_probe_and_dtype(model, probes):
     i, s = model.sample(jax.random.PRNGKey(0), probes[0], 0.1)
-    assert i.shape == () and s.shape == (model.pose_dim,)
-    assert s.dtype == model.windows.dtype
+    assert i.shape == () and s.shape == (model.database.pose_dim,)
+    assert s.dtype == model.database.windows.dtype
     i2, s2 = model.sample_exact(jax.random.PRNGKey(0), probes[0], 0.1)
-    assert i2.shape == () and s2.shape == (model.pose_dim,)
+    assert i2.shape == () and s2.shape == (model.database.pose_dim,)
 
 
 def test_sampling_new_probes_does_not_recompile(model, probes):
@@ -308,7 +308,7 @@ def test_synthesis_exact_low_beta_replays_the_database(model, train):
     )
     y_true = np.asarray(model.feature_map.encode(clip))[1 : WINDOW + 1 + n]
     np.testing.assert_allclose(np.asarray(y), y_true, atol=1e-8)
-    first = model.clip_sizes[0]
+    first = model.database.clip_sizes[0]
     np.testing.assert_array_equal(np.asarray(idx), first + np.arange(n))
 
 

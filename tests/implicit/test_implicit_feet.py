@@ -30,28 +30,28 @@ def test_foot_lock_makes_planted_feet_move_as_in_the_example(db):
     model = db[1]
     fm = model.feature_map
     dim = fm.dim
-    succ = np.asarray(model.successors)
+    succ = np.asarray(model.database.successors)
     _, h0, h1 = mj.motion.ground_axes(fm.skeleton.up_axis)
     hz = [h0, h1]
     chans = root_channels(fm)
-    assert chans is not None and len(model.feet) == 2
+    assert chans is not None and len(model.database.feet) == 2
     rng = np.random.default_rng(0)
     for _ in range(4):
-        i, j = rng.integers(0, model.n_examples, 2)
+        i, j = rng.integers(0, model.database.n_examples, 2)
         ex_new, ex_last = succ[i, :dim], succ[i, :dim] - succ[i, dim:]
         last = succ[j, :dim]
         new = ex_new + 0.3 * rng.standard_normal(dim)  # an offset dragging the feet
         for c in ([1.0, 0.0], [0.0, 1.0], [1.0, 1.0]):
             got, _ = lock_root(
-                fm, model.feet, chans, jnp.asarray(last), jnp.asarray(new), jnp.asarray(ex_last),
+                fm, model.database.feet, chans, jnp.asarray(last), jnp.asarray(new), jnp.asarray(ex_last),
                 jnp.asarray(ex_new), jnp.asarray(c), jnp.zeros(3), 1.0, 0.0,
             )  # fmt: skip
             got = np.asarray(got)
             keep = np.ones(dim, bool)
             keep[list(chans)] = False
             np.testing.assert_array_equal(got[keep], new[keep])
-            g = np.asarray(fm.joint_positions(np.stack([last, got])))[:, model.feet]
-            e = np.asarray(fm.joint_positions(np.stack([ex_last, ex_new])))[:, model.feet]
+            g = np.asarray(fm.joint_positions(np.stack([last, got])))[:, model.database.feet]
+            e = np.asarray(fm.joint_positions(np.stack([ex_last, ex_new])))[:, model.database.feet]
             excess = ((g[1] - g[0]) - (e[1] - e[0]))[:, hz]
             np.testing.assert_allclose(np.asarray(c) @ excess, 0.0, atol=1e-9)
 
@@ -62,7 +62,7 @@ def test_foot_contact_against_numpy(db):
     clips, model = db
     from mtex_jax.motion import joint_positions
 
-    feet = list(model.feet)
+    feet = list(model.database.feet)
     assert [model.feature_map.skeleton.names[f] for f in feet] == ["rFoot", "lFoot"]
     speeds = []
     for c in clips[1:]:
@@ -74,7 +74,7 @@ def test_foot_contact_against_numpy(db):
         )
     med = np.median(np.concatenate(speeds), axis=0)
     ref = np.concatenate([1 - np.minimum(s[WINDOW:] / med, 1) for s in speeds])
-    np.testing.assert_allclose(np.asarray(model.foot_contact), ref, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(model.database.foot_contact), ref, atol=1e-9)
     assert 0.1 < float(np.mean(ref > 0)) < 0.9
 
 
@@ -83,13 +83,13 @@ def test_recent_weight_adds_the_newest_pose_distance(db):
     pose vectors), and γ does not depend on w."""
     clips, model = db
     m0 = mj.implicit.learn(clips[1:], WINDOW, recent_weight=0.0, feature_map=model.feature_map)
-    w = model.recent_weight
-    assert w > 0 and m0.recent_weight == 0.0
-    np.testing.assert_allclose(np.asarray(m0.gamma), np.asarray(model.gamma), rtol=1e-12)
+    w = model.database.recent_weight
+    assert w > 0 and m0.database.recent_weight == 0.0
+    np.testing.assert_allclose(np.asarray(m0.database.gamma), np.asarray(model.database.gamma), rtol=1e-12)
     probe0, probe = m0.windows_of(clips[0])[3], model.windows_of(clips[0])[3]
-    idx = np.arange(0, model.n_examples, 7)
+    idx = np.arange(0, model.database.n_examples, 7)
     d0 = np.asarray(m0.distance2(np.broadcast_to(probe0, (len(idx), probe0.size)), idx))
     d1 = np.asarray(model.distance2(np.broadcast_to(probe, (len(idx), probe.size)), idx))
-    p = model.pose_dim
-    new = ((np.asarray(m0.windows)[idx, -p:] - np.asarray(probe0)[-p:]) ** 2).sum(-1)
+    p = model.database.pose_dim
+    new = ((np.asarray(m0.database.windows)[idx, -p:] - np.asarray(probe0)[-p:]) ** 2).sum(-1)
     np.testing.assert_allclose(d1, d0 + w * new, rtol=1e-9)

@@ -35,11 +35,11 @@ def model(clips) -> ImplicitModel:
 def _lock(model: ImplicitModel, cfg: SynthesisConfig, prev, new, ex_prev, ex_new, i, delta):
     """The foot lock of ``_feet``'s docstring in NumPy (FK through the feature map's decode)."""
     fm = model.feature_map
-    feet = list(model.feet)
+    feet = list(model.database.feet)
     g = np.asarray(fm.joint_positions(np.stack([prev, new])))[:, feet]
     e = np.asarray(fm.joint_positions(np.stack([ex_prev, ex_new])))[:, feet]
     slide = (g[1] - g[0]) - (e[1] - e[0])
-    c = np.asarray(model.foot_contact)[i]
+    c = np.asarray(model.database.foot_contact)[i]
     delta = cfg.lock_smoothing * delta + (1 - cfg.lock_smoothing) * (
         (c[:, None] * slide).sum(0) / max(c.sum(), 1.0)
     )
@@ -66,9 +66,9 @@ def _smooth_seams(raw, before, seams, width, keep):
 def _reference(model: ImplicitModel, seed_y, idx, cfg: SynthesisConfig) -> np.ndarray:
     """The generator of ``_synthesis``'s docstring in NumPy, for given example indices."""
     dim = model.feature_map.dim
-    succ = np.asarray(model.successors)
+    succ = np.asarray(model.database.successors)
     y_next, dy = succ[:, :dim], succ[:, dim:]
-    clip = np.asarray(model.clip_index)
+    clip = np.asarray(model.database.clip_index)
     vel = np.zeros(dim, bool)
     vel[list(mj.implicit.velocity_channels(model.feature_map))] = True
     prev, cur, off, age, out = seed_y[-1], -1, np.zeros(dim), 0, []
@@ -138,7 +138,7 @@ def test_velocity_form_applies_the_examples_change_of_pose(model, clips):
     pose = np.ones(dim, bool)
     pose[list(mj.implicit.velocity_channels(model.feature_map))] = False
     step = np.diff(y[WINDOW - 1 :], axis=0)
-    dy = np.asarray(model.successors)[idx, dim:]
+    dy = np.asarray(model.database.successors)[idx, dim:]
     np.testing.assert_allclose(step[:, pose], dy[:, pose], atol=1e-9)
     assert len(set(idx.tolist())) > 5  # transitions happened
 
@@ -152,7 +152,7 @@ def test_blending_rejoins_the_example_after_blend_frames(model, clips):
     y, idx = model.synthesize_poses(jax.random.PRNGKey(2), clips[0], N, 1.0, config=cfg)
     y, idx = np.asarray(y)[WINDOW:], np.asarray(idx)
     dim = model.feature_map.dim
-    succ_y = np.asarray(model.successors)[:, :dim]
+    succ_y = np.asarray(model.database.successors)[:, :dim]
     for t in range(0, N - b - 1, 8):  # searches at 0, 8, 16, …; 8 frames played from each
         np.testing.assert_allclose(y[t + b : t + 8], succ_y[idx[t + b : t + 8]], atol=1e-9)
 
@@ -164,7 +164,7 @@ def test_root_blend_fades_the_root_velocity_on_its_own(model, clips):
     dim = model.feature_map.dim
     vel = np.zeros(dim, bool)
     vel[list(mj.implicit.velocity_channels(model.feature_map))] = True
-    succ_y = np.asarray(model.successors)[:, :dim]
+    succ_y = np.asarray(model.database.successors)[:, :dim]
     key = jax.random.PRNGKey(4)
     rb = 2
     cfg = SynthesisConfig(
@@ -191,7 +191,7 @@ def test_continuation_lookahead_and_run_cap(model, clips):
     cfg = SynthesisConfig(continuation=c, lookahead=la, max_run=cap)
     _, idx = model.synthesize_poses(jax.random.PRNGKey(1), clips[0], 96, 1.0, config=cfg)
     idx = np.asarray(idx)
-    clip = np.asarray(model.clip_index)
+    clip = np.asarray(model.database.clip_index)
     remaining = np.array([np.sum(clip[i + 1 :] == clip[i]) for i in range(len(clip))])
     for t in range(1, len(idx)):
         if t % c:
@@ -227,13 +227,13 @@ def test_tree_at_tiny_beta_agrees_with_exhaustive_search(model, clips, leaf):
         jax.random.PRNGKey(0), clip, 30, 1e-9, config=cfg, sampler="exact"
     )
     it, ie = np.asarray(it), np.asarray(ie)
-    w = np.asarray(model.windows)
+    w = np.asarray(model.database.windows)
     probes = np.asarray(model.windows_of(clip))[:30]
     brute = np.argmin(((probes[:, None] - w[None]) ** 2).sum(-1), axis=1)
     np.testing.assert_array_equal(ie[:1], brute[:1])
-    first = model.clip_sizes[0]
+    first = model.database.clip_sizes[0]
     np.testing.assert_array_equal(ie, first + np.arange(30))
-    codes = np.asarray(model.codes)
+    codes = np.asarray(model.database.codes)
     if leaf == "exact":
         np.testing.assert_array_equal(it, ie)
     else:
@@ -269,10 +269,10 @@ def test_neighbour_radius_against_brute_force(seed, n_clips, k):
 def test_model_neighbour_radius_and_hubness_kernel(model, clips):
     """The model's r_i is the mean squared distance to the 10 nearest non-overlapping windows,
     and the exact sampler at β → 0 picks argmin ‖Ψ_i − Φ‖² − h r_i over admissible examples."""
-    w = np.asarray(model.windows)
-    clip, frame = np.asarray(model.clip_index), np.asarray(model.frame_index)
+    w = np.asarray(model.database.windows)
+    clip, frame = np.asarray(model.database.clip_index), np.asarray(model.database.frame_index)
     r = _brute_radius(w, clip, frame, WINDOW, 10)
-    np.testing.assert_allclose(np.asarray(model.neighbour_radius), r, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(model.database.neighbour_radius), r, rtol=1e-4)
     probe = np.asarray(model.windows_of(clips[0]))[0]
     d2 = ((w - probe) ** 2).sum(-1)
     rem = np.array([np.sum(clip[i + 1 :] == clip[i]) for i in range(len(clip))])
@@ -307,7 +307,7 @@ def test_float32_smoke(clips):
         for c in clips[:3]
     ]
     m = mj.implicit.learn(c32, WINDOW)
-    assert m.windows.dtype == np.float32
+    assert m.database.windows.dtype == np.float32
     out = m.synthesize(jax.random.PRNGKey(0), c32[0], 30, 1.0)
     assert np.asarray(out.rotations).dtype == np.float32
     assert np.all(np.isfinite(np.asarray(out.rotations)))
@@ -336,7 +336,7 @@ def test_joint_reach_against_path_enumeration(model):
 def test_body_weighting_whitens_pose_and_velocity_groups(model, clips):
     """γ_c · m_c is one number per group and the mean variance of ψ/γ over a group is 1."""
     psi = np.concatenate([pose_vectors(model.feature_map, c) for c in clips[1:]])
-    gamma = np.asarray(model.gamma)
+    gamma = np.asarray(model.database.gamma)
     imp = np.tile(mj.implicit.channel_importance(model.feature_map), 2)
     p = psi.shape[1]
     for half in (slice(0, p // 2), slice(p // 2, p)):
@@ -351,10 +351,10 @@ def test_body_weighting_whitens_pose_and_velocity_groups(model, clips):
 def test_min_explained_picks_the_fewest_components(model, clips):
     target = 0.6
     m = mj.implicit.learn(clips[1:], WINDOW, min_explained=target, feature_map=model.feature_map)
-    w = np.asarray(m.windows)
+    w = np.asarray(m.database.windows)
     s = np.linalg.svd(w - w.mean(0), compute_uv=False)
     frac = np.cumsum(s**2) / np.sum(s**2)
-    b = m.n_components
+    b = m.database.n_components
     assert frac[b - 1] >= target - 1e-9 > frac[b - 2]
     np.testing.assert_allclose(m.explained_variance, frac[b - 1], rtol=1e-8)
 

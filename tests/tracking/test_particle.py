@@ -82,7 +82,7 @@ def test_problem_observations(model, problem):
     assert problem.joints[0] == 0 and k == 17
     assert problem.observations.shape == (60, k, 2)
     assert problem.truth.shape == (60, k, 3)
-    assert problem.init_window.shape == (WINDOW, model.pose_dim)
+    assert problem.init_window.shape == (WINDOW, model.database.pose_dim)
     resid = np.asarray(problem.observations - problem.camera.project(problem.truth))
     assert abs(resid.std() - 2.0) < 0.15 and abs(resid.mean()) < 0.2  # 2 px Gaussian noise
 
@@ -118,7 +118,7 @@ def test_implicit_prior_beats_constant_velocity_with_300_particles(model, proble
     assert e_imp < 0.75 * e_cv
     assert np.mean(rel["implicit"]) < np.mean(rel["constant_velocity"])
     default = salsa30_model  # mj.implicit.learn(chunks, WINDOW): learned once (conftest.py)
-    assert default.window == WINDOW and default.recent_weight > 0
+    assert default.database.window == WINDOW and default.database.recent_weight > 0
     e_def = np.mean(
         [track(jax.random.PRNGKey(s), default, problem, n_particles=300).mean_error for s in (0, 1)]
     )

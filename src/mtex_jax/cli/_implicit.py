@@ -94,9 +94,10 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     if args.start < 0:
         raise ValueError(f"--start must be ≥ 0, got {args.start}")
     start = motions[0][args.start :]
-    if start.n_frames < model.window + 1:
+    if start.n_frames < model.database.window + 1:
         raise ValueError(
-            f"the first clip has fewer than {model.window + 1} frames from --start {args.start}"
+            f"the first clip has fewer than {model.database.window + 1} frames from "
+            f"--start {args.start}"
         )
     t0 = time.perf_counter()
     motion = model.synthesize(
@@ -110,7 +111,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     ).numpy()
     write_bvh(out, motion)
     print(
-        f"wrote {out}: {motion.n_frames} frames at {motion.fps:g} Hz ({model.window} seed frames "
+        f"wrote {out}: {motion.n_frames} frames at {motion.fps:g} Hz "
+        f"({model.database.window} seed frames "
         f"from {args.clips[0]} + {args.frames} synthesised, beta={args.beta:g}, "
         f"noise={args.noise:g}, seed={args.seed}; {time.perf_counter() - t0:.1f} s)"
     )

@@ -89,11 +89,8 @@ class ImplicitModel(eqx.Module):
     (IP §5); track with :func:`~mtex_jax.tracking.track` (IP §3, §6). Arrays are JAX arrays in
     the dtype of the training data (as allowed by the JAX configuration).
 
-    The database's fields (``window``, ``n_components``, ``leaf_max``, ``clip_sizes``,
-    ``recent_weight``, ``feet``, ``gamma``, ``pose_std``, ``mean``, ``basis``, ``sigma``,
-    ``windows``, ``successors``, ``codes``, ``order``, ``sorted_codes``, ``sorted_coeffs``,
-    ``clip_index``, ``frame_index``, ``acceleration_std``, ``neighbour_radius``,
-    ``foot_contact``; see :class:`MotionDatabase`) are also read-only attributes of the model.
+    The windows, the tree and their sizes are the database's (``model.database.windows``,
+    ``model.database.n_examples``; see :class:`MotionDatabase`).
 
     Attributes:
         feature_map: the observation map ``motion ↔ y`` (fixes skeleton and frame rate).
@@ -122,134 +119,30 @@ class ImplicitModel(eqx.Module):
                 f"numbers, the feature map's {2 * self.feature_map.dim}"
             )
 
-    # ------------------------------------------------------------------ the database's fields
-    @property
-    def window(self) -> int:
-        return self.database.window
-
-    @property
-    def n_components(self) -> int:
-        return self.database.n_components
-
-    @property
-    def leaf_max(self) -> int:
-        return self.database.leaf_max
-
-    @property
-    def clip_sizes(self) -> tuple[int, ...]:
-        return self.database.clip_sizes
-
-    @property
-    def recent_weight(self) -> float:
-        return self.database.recent_weight
-
-    @property
-    def feet(self) -> tuple[int, ...]:
-        return self.database.feet
-
-    @property
-    def gamma(self) -> Float[Array, " P"]:
-        return self.database.gamma
-
-    @property
-    def pose_std(self) -> Float[Array, " P"]:
-        return self.database.pose_std
-
-    @property
-    def mean(self) -> Float[Array, " W"]:
-        return self.database.mean
-
-    @property
-    def basis(self) -> Float[Array, "W b"]:
-        return self.database.basis
-
-    @property
-    def sigma(self) -> Float[Array, " b"]:
-        return self.database.sigma
-
-    @property
-    def windows(self) -> Float[Array, "n W"]:
-        return self.database.windows
-
-    @property
-    def successors(self) -> Float[Array, "n P"]:
-        return self.database.successors
-
-    @property
-    def codes(self) -> Int[Array, " n"]:
-        return self.database.codes
-
-    @property
-    def order(self) -> Int[Array, " n"]:
-        return self.database.order
-
-    @property
-    def sorted_codes(self) -> Int[Array, " n"]:
-        return self.database.sorted_codes
-
-    @property
-    def sorted_coeffs(self) -> Float[Array, "n b"]:
-        return self.database.sorted_coeffs
-
-    @property
-    def clip_index(self) -> Int[Array, " n"]:
-        return self.database.clip_index
-
-    @property
-    def frame_index(self) -> Int[Array, " n"]:
-        return self.database.frame_index
-
-    @property
-    def acceleration_std(self) -> Float[Array, " D"]:
-        return self.database.acceleration_std
-
-    @property
-    def neighbour_radius(self) -> Float[Array, " n"]:
-        return self.database.neighbour_radius
-
-    @property
-    def foot_contact(self) -> Float[Array, "n F"]:
-        return self.database.foot_contact
-
     # ------------------------------------------------------------------ sizes
-    @property
-    def n_examples(self) -> int:
-        """``n``, number of database windows."""
-        return self.database.n_examples
-
-    @property
-    def pose_dim(self) -> int:
-        """``P = 2D``, numbers per pose vector."""
-        return self.database.pose_dim
-
-    @property
-    def window_dim(self) -> int:
-        """``W = d·P``, numbers per window (model coordinates)."""
-        return self.database.window_dim
-
     @property
     def fps(self) -> float:
         return self.feature_map.fps
 
     def summary(self) -> dict[str, Any]:
         """Sizes of the database and the tree (for reports)."""
-        counts = np.bincount(np.asarray(self.codes), minlength=0)
+        counts = np.bincount(np.asarray(self.database.codes), minlength=0)
         nonempty = int(np.count_nonzero(counts))
         return {
-            "n_examples": self.n_examples,
-            "window": self.window,
+            "n_examples": self.database.n_examples,
+            "window": self.database.window,
             "fps": self.fps,
-            "pose_dim": self.pose_dim,
-            "window_dim": self.window_dim,
-            "n_components": self.n_components,
+            "pose_dim": self.database.pose_dim,
+            "window_dim": self.database.window_dim,
+            "n_components": self.database.n_components,
             "explained_variance": self.explained_variance,
             "weighting": self.weighting,
-            "recent_weight": self.recent_weight,
-            "leaf_max": self.leaf_max,
+            "recent_weight": self.database.recent_weight,
+            "leaf_max": self.database.leaf_max,
             "nonempty_leaves": nonempty,
-            "leaves": 1 << self.n_components,
-            "mean_leaf_size": self.n_examples / max(nonempty, 1),
-            "clips": len(self.clip_sizes),
+            "leaves": 1 << self.database.n_components,
+            "mean_leaf_size": self.database.n_examples / max(nonempty, 1),
+            "clips": len(self.database.clip_sizes),
         }
 
     # ------------------------------------------------------------------ coordinates
@@ -265,13 +158,14 @@ class ImplicitModel(eqx.Module):
         ``k + 1 … k + d``). The clip needs ``d + 1`` frames and the model's frame rate.
         """
         self.feature_map._check_motion(motion)
-        if motion.n_frames < self.window + 1:
+        if motion.n_frames < self.database.window + 1:
             raise ValueError(
-                f"windows_of: the window ({self.window} pose vectors) is longer than the clip "
-                f"allows ({motion.n_frames} frames, need at least {self.window + 1})"
+                f"windows_of: the window ({self.database.window} pose vectors) is longer than "
+                f"the clip allows ({motion.n_frames} frames, need at least "
+                f"{self.database.window + 1})"
             )
         psi = pose_vectors(self.feature_map, motion)
-        return self.database.scale_windows(window_view(psi, self.window))
+        return self.database.scale_windows(window_view(psi, self.database.window))
 
     def scale_windows(self, poses: Float[ArrayLike, "*batch d P"]) -> Float[Array, "*batch W"]:
         """Model coordinates of windows of pose vectors (:meth:`MotionDatabase.scale_windows`)."""
@@ -298,13 +192,14 @@ class ImplicitModel(eqx.Module):
         check_beta(beta, fn)
         probes = jnp.asarray(probes)
         if not jnp.issubdtype(probes.dtype, jnp.floating):
-            probes = probes.astype(self.windows.dtype)
+            probes = probes.astype(self.database.windows.dtype)
         single = probes.ndim == 1
         if single:
             probes = probes[None]
-        if probes.ndim != 2 or probes.shape[1] != self.window_dim:
+        if probes.ndim != 2 or probes.shape[1] != self.database.window_dim:
             raise ValueError(
-                f"{fn}: probes must have shape (N, {self.window_dim}) or ({self.window_dim},) "
+                f"{fn}: probes must have shape (N, {self.database.window_dim}) or "
+                f"({self.database.window_dim},) "
                 f"(model coordinates, see windows_of), got {probes.shape}"
             )
         if is_concrete(probes) and not bool(jnp.all(jnp.isfinite(probes))):
@@ -351,7 +246,7 @@ class ImplicitModel(eqx.Module):
         check_key(key, "sample")
         probes, beta_a, single = self._prepare(probes, beta, "sample")
         idx = sample_tree_jit(self.database, key, probes, beta_a, leaf, int(candidates))
-        succ = self.successors[idx]
+        succ = self.database.successors[idx]
         return (idx[0], succ[0]) if single else (idx, succ)
 
     def sample_exact(
@@ -373,7 +268,7 @@ class ImplicitModel(eqx.Module):
         check_key(key, "sample_exact")
         probes, beta_a, single = self._prepare(probes, beta, "sample_exact")
         idx = sample_exact_jit(self.database, key, probes, beta_a)
-        succ = self.successors[idx]
+        succ = self.database.successors[idx]
         return (idx[0], succ[0]) if single else (idx, succ)
 
     # ------------------------------------------------------------------ synthesis

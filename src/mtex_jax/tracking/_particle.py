@@ -452,9 +452,9 @@ def run_particle_filter(
             "none (real keypoints): track it with a texture's MapSmoother"
         )
     check_count(problem.n_frames, "track: frames to track", MAX_GENERATED_FRAMES)
-    if problem.init_window.shape != (model.window, model.pose_dim):
+    if problem.init_window.shape != (model.database.window, model.database.pose_dim):
         raise ValueError("track: the problem was made for a different model (window shape)")
-    dt = model.windows.dtype
+    dt = model.database.windows.dtype
     # the filter is causal: run on the observations padded to a shape bucket (design §11),
     # the first T frames kept (cut on the host: eager slices compile once per length)
     T = problem.n_frames

@@ -214,7 +214,7 @@ def make_problem(
     check_key(key, "make_problem")
     fm = feature_map_of(prior, "make_problem")
     fm._check_motion(motion)
-    d = prior.window if isinstance(prior, ImplicitModel) else 2
+    d = prior.database.window if isinstance(prior, ImplicitModel) else 2
     if not (np.isfinite(pixel_noise) and pixel_noise >= 0):
         raise ValueError(f"make_problem: pixel_noise must be finite and ≥ 0, got {pixel_noise}")
     missing = _unit_fraction(missing, "missing")
@@ -241,7 +241,7 @@ def make_problem(
     clip = motion[start : start + d + 1 + n]
     if isinstance(prior, ImplicitModel):
         init = prior.pose_vectors(clip)[:d]  # rows = clip frames 1 … d+n
-        dt = prior.windows.dtype
+        dt = prior.database.windows.dtype
     else:
         init = np.asarray(fm.encode(clip))[1 : d + 1]
         dt = jnp.asarray(prior.textons.mu).dtype
