@@ -109,7 +109,7 @@ def test_single_segment_is_logsumexp_of_initial_plus_segment():
 def test_long_windows_are_chunked_exactly():
     """tmax = None on a longer sequence: the window is reduced in several chunks (small
     budget forced), which must agree with one chunk."""
-    import mtex_jax.texture._segmentation.forward as fwd
+    import mtex_jax.texture._segmentation.recursion as fwd
 
     T, n_t, tmin = 40, 2, 3
     tex, log_M, log_pi, Y = _problem(T, n_t, 5)
@@ -212,7 +212,7 @@ def test_marginal_at_least_best_path_on_held_out_salsa(cmu_motions):
 def test_fallback_paths_agree_with_brute_force(monkeypatch):
     """The exact fallbacks (gathered windows; the N×N logsumexp of the transition) give the
     brute-force value, also with transition probabilities of e^-2000 (shifted per column)."""
-    import mtex_jax.texture._segmentation.forward as fwd
+    import mtex_jax.texture._segmentation.recursion as fwd
 
     T, n_t, tmin, tmax = 12, 3, 3, 6
     tex, log_M, log_pi, Y = _problem(T, n_t, 21)

@@ -12,9 +12,10 @@ log-probabilities ``log π[i]``:
     log p(y_0:T−1) = logsumexp_i α(T − 1, i)
 
 summed over every segmentation with ``tmin ≤ e − b + 1 ≤ tmax`` and every labelling. It is the
-Viterbi recursion of :func:`viterbi_segments` with logsumexp in place of max: the same split
-``s_i(b, e) = A_i(e) + B⁰_i(b)``, the same ring buffer of ``B``, the same ``lax.scan`` over
-blocks of ``tmin`` ends. Inside a block, the window of candidate starts of every end is
+Viterbi recursion of :func:`viterbi_segments` with logsumexp in place of max, over the log
+semiring: one recursion (``recursion.py``) with the same split ``s_i(b, e) = A_i(e) + B⁰_i(b)``,
+the same ring buffer of ``B``, the same ``lax.scan`` over blocks of ``tmin`` ends. Inside a
+block, the window of candidate starts of every end is
 gathered (in chunks of starts, with a running maximum, so the memory stays bounded even for
 ``tmax = None``) and reduced by a logsumexp that is exact (no underflow of the window's largest
 term) and has finite gradients where a window holds no feasible start. The transition step
@@ -29,7 +30,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Int
 
@@ -37,22 +37,10 @@ from ...core import as_array, bucket_length, pad_frames
 from .._scoring.scores import SegmentScorer, segment_scores
 from .._texton.checks import check_obs
 from .._texton.texton import Texton
-from .segment import check_dp_inputs, end_start_parts
+from .recursion import LogSumExp, safe_logsumexp, semi_markov_values
+from .segment import check_dp_inputs
 
 __all__ = ["forward_log_likelihood", "log_likelihood", "padded_log_likelihood"]
-
-_GATHER_BUDGET = 1 << 21  # elements of one gathered (ends, starts, textons) chunk
-_FORCE_EXACT = False  # tests: always take the exact (slower) transition path
-
-
-def _safe_logsumexp(x: Array, axis: int) -> Array:
-    """``log Σ exp x`` along ``axis``; ``−inf`` (with zero gradient) where every term is
-    ``−inf``."""
-    m = lax.stop_gradient(jnp.max(x, axis=axis, keepdims=True))
-    m = jnp.where(jnp.isfinite(m), m, 0.0)
-    s = jnp.sum(jnp.exp(x - m), axis=axis)
-    pos = s > 0
-    return jnp.where(pos, jnp.log(jnp.where(pos, s, 1.0)) + jnp.squeeze(m, axis), -jnp.inf)
 
 
 @eqx.filter_jit
@@ -80,77 +68,13 @@ def forward_log_likelihood(
     Returns:
         the scalar log-likelihood (``−inf`` if no segmentation fits).
     """
-    n_t, T = scorer.init.shape
+    n_t, _ = scorer.init.shape
     dtype = scorer.cum_dyn.dtype
     log_M = jnp.asarray(log_M, dtype)
     log_pi = jnp.asarray(log_pi, dtype)
-    P = tmin
-    Wn = tmax - tmin + 1
-    nb = -(-T // P)
-    Tp = nb * P
-    a_all, b0_all = end_start_parts(scorer, Tp)
-    # window offset w holds start b = e − tmax + 1 + w, i.e. length L = tmax − w
-    if log_durations is None:
-        dur_w = jnp.zeros((Wn, n_t), dtype)
-    else:
-        dur_w = jnp.asarray(log_durations, dtype)[:, ::-1].T
-    Wc = int(min(Wn, max(1, _GATHER_BUDGET // max(1, P * n_t))))
-    nc = -(-Wn // Wc)
-    dur_w = jnp.concatenate([dur_w, jnp.full((nc * Wc - Wn, n_t), -jnp.inf, dtype)], axis=0)
-    neg = jnp.asarray(-jnp.inf, dtype)
-    bbuf = jnp.full((tmax + Tp + 1, n_t), neg, dtype).at[tmax].set(b0_all[0] + log_pi)
-    rows = jnp.arange(P)[:, None] + jnp.arange(Wc)[None, :]  # (P, Wc)
-
-    def gathered(win):
-        win = jnp.concatenate([win, jnp.full((nc * Wc - Wn, n_t), neg, dtype)], axis=0)
-
-        def chunk(carry, c):
-            m, acc = carry
-            vals = win[rows + c * Wc] + lax.dynamic_slice_in_dim(dur_w, c * Wc, Wc)[None]
-            new_m = lax.stop_gradient(jnp.maximum(m, jnp.max(vals, axis=1)))
-            safe = jnp.where(jnp.isfinite(new_m), new_m, 0.0)
-            acc = acc * jnp.exp(m - safe) + jnp.sum(jnp.exp(vals - safe[:, None]), axis=1)
-            return (new_m, acc), None
-
-        init = (jnp.full((P, n_t), neg, dtype), jnp.zeros((P, n_t), dtype))
-        (m, acc), _ = lax.scan(chunk, init, jnp.arange(nc))
-        pos = acc > 0
-        safe_m = jnp.where(jnp.isfinite(m), m, 0.0)
-        return jnp.where(pos, jnp.log(jnp.where(pos, acc, 1.0)) + safe_m, neg)
-
-    col = jnp.max(log_M, axis=0)  # per column shift, so tiny probabilities do not underflow
-    col = jnp.where(jnp.isfinite(col), col, 0.0)
-    M_lin = jnp.exp(log_M - col)
-    M_pos = jnp.isfinite(log_M).astype(dtype)
-
-    def transition(v):
-        # logsumexp_l v(e, l) + log M[l, i] as one GEMM in linear space, shifted by the row's
-        # maximum; exact unless a column's terms all underflow where one is finite (then the
-        # (P, N, N) logsumexp)
-        top = lax.stop_gradient(jnp.max(v, axis=1, keepdims=True))
-        top = jnp.where(jnp.isfinite(top), top, 0.0)
-        total = jnp.exp(v - top) @ M_lin
-        pos = total > 0
-        fast = jnp.where(pos, jnp.log(jnp.where(pos, total, 1.0)) + top + col, neg)
-        feasible = (jnp.isfinite(v).astype(dtype) @ M_pos) > 0
-        exact = jnp.all(pos | ~feasible) & (not _FORCE_EXACT)
-        return lax.cond(
-            exact, lambda v: fast, lambda v: _safe_logsumexp(v[:, :, None] + log_M[None], 1), v
-        )
-
-    def block(bbuf, s):
-        win = lax.dynamic_slice(bbuf, (s + 1, 0), (tmax, n_t))  # b in [s − tmax + 1, s]
-        lse = gathered(win)
-        v = lax.dynamic_slice(a_all, (s, 0), (P, n_t)) + lse
-        v = jnp.where((s + jnp.arange(P) < T)[:, None], v, neg)
-        h = transition(v)  # (P, N): logsumexp_l v(e, l) + log M[l, i]
-        bnew = lax.dynamic_slice(b0_all, (s + 1, 0), (P, n_t)) + h
-        bbuf = lax.dynamic_update_slice(bbuf, bnew, (tmax + s + 1, 0))
-        return bbuf, v
-
-    _, V = lax.scan(block, bbuf, jnp.arange(nb) * P)
-    V = V.reshape(Tp, n_t)
-    return _safe_logsumexp(V[jnp.asarray(n_valid) - 1], axis=0)
+    sr = LogSumExp(log_M, log_durations, tmin, tmax, n_t, dtype)
+    _, V = semi_markov_values(scorer, log_pi, sr)
+    return safe_logsumexp(V[jnp.asarray(n_valid) - 1], axis=0)
 
 
 def log_likelihood(

@@ -20,8 +20,9 @@ maximum:
     V(e, i) = A_i(e) + max_{e − tmax + 1 ≤ b ≤ e − tmin + 1} B_i(b)
 
 ``V(e)`` needs ``B(b)`` only for ``b ≤ e − tmin + 1``, and ``B(b)`` needs ``V(b − 1)``, so ``tmin``
-consecutive ends are independent of each other: the ``lax.scan`` runs over blocks of ``tmin``
-frames, each block one windowed maximum (``lax.reduce_window``) over the buffer of the last
+consecutive ends are independent of each other: the ``lax.scan`` (``recursion.py``, shared with
+the forward algorithm over another semiring) runs over blocks of ``tmin`` frames, each block one
+windowed maximum (``lax.reduce_window``) over the buffer of the last
 ``tmax`` values of ``B`` and one max-plus product with ``log M``. Cost
 ``O(T·(tmax − tmin + 1)·N_t + T·N_t²)``; no back-pointer tables are stored: the arg-maxima along
 the optimal path are recomputed from ``V (T, N_t)`` while back-tracking. ``tmax=None`` uses a
@@ -43,6 +44,7 @@ from .._scoring.packing import packed_scores_impl
 from .._scoring.scores import SegmentScorer, batch_scores_impl, segment_scores
 from .._texton.checks import check_obs
 from .._texton.texton import Texton
+from .recursion import MaxPlus, semi_markov_values
 
 __all__ = ["Segmentation", "segment", "segment_scorer", "viterbi_segments"]
 
@@ -112,27 +114,6 @@ def check_lengths(tmin: int, tmax: int | None, T: int) -> tuple[int, int]:
     return int(tmin), int(tmax)
 
 
-def end_start_parts(scorer: SegmentScorer, Tp: int) -> tuple[Array, Array]:
-    """The end part ``A(e)`` and start part ``B⁰(b)`` of every segment score, each
-    ``(Tp + 1, N_t)`` (rows beyond ``T`` are ``−inf``): ``score_i(b, e) = A_i(e) + B⁰_i(b)``."""
-    init, cd, co = scorer.init, scorer.cum_dyn, scorer.cum_obs
-    n_t, T = init.shape
-    dtype = cd.dtype
-    c = scorer.dyn_offset + scorer.obs_offset  # (N,)
-    e_idx = jnp.arange(T)
-    a_all = (cd[:, 1:] + co[:, 1:]).T + e_idx[:, None].astype(dtype) * c
-    b0_all = (
-        init
-        - cd[:, jnp.minimum(e_idx + 2, T)]
-        - co[:, :T]
-        - e_idx[None, :].astype(dtype) * c[:, None]
-        - scorer.dyn_offset[:, None]
-        + scorer.obs_offset[:, None]
-    ).T
-    pad = jnp.full((Tp + 1 - T, n_t), -jnp.inf, dtype)
-    return jnp.concatenate([a_all, pad], axis=0), jnp.concatenate([b0_all, pad], axis=0)
-
-
 def check_dp_inputs(
     textons: Texton, log_M: ArrayLike, log_pi: ArrayLike, T: int, tmin: int, tmax: int | None
 ) -> tuple[int, int, Array, Array]:
@@ -147,19 +128,6 @@ def check_dp_inputs(
     if log_pi.shape != (n_t,):
         raise ValueError(f"log_pi must have shape ({n_t},), got {log_pi.shape}")
     return tmin, tmax, log_M, log_pi
-
-
-# The duration-aware windowed maximum of a block (see ``viterbi_segments``) gathers the
-# ``(P, Wn, N_t)`` window when it is at most this many bytes (it then stays in cache), and is
-# otherwise an unrolled chain of shifted slices, for at most _UNROLL_MAX_LENGTHS lengths
-# (compile time grows with it), or the gather again. Measured on 2 cores at 50,068 frames
-# (P = 60, Wn = 121): on the clips joined into one sequence the gather took 0.046 s for 6
-# textons against the chain's 0.26 s (whose 121 small operations per block then dominate),
-# and in the learner's E-step 0.27 / 0.34 / 0.61 / 0.90 s for 6 / 8 / 16 / 32 textons against
-# 0.30 / 0.37 / 0.70 / 1.00 s; for 56 textons (3.3 MB) the chain was faster, 1.65 against
-# 1.94 s.
-_GATHER_MAX_BYTES = 2 * 2**20
-_UNROLL_MAX_LENGTHS = 256
 
 
 @eqx.filter_jit
@@ -198,53 +166,17 @@ def viterbi_segments(
     n_valid = jnp.asarray(n_valid)
     log_M = jnp.asarray(log_M, dtype)
     log_pi = jnp.asarray(log_pi, dtype)
-    P = tmin  # ends processed together: V(e) needs B(b) only for b <= e − tmin + 1
     Wn = tmax - tmin + 1  # candidate starts per end
-    nb = -(-T // P)  # blocks
-    Tp = nb * P
-    a_all, b0_all = end_start_parts(scorer, Tp)
-    # B(b) lives at row tmax + b; the first tmax rows are −inf (starts before frame 0)
-    bbuf = jnp.full((tmax + Tp + 1, n_t), neg, dtype).at[tmax].set(b0_all[0] + log_pi)
-
-    if log_durations is not None:
-        # row p + w of a window is the start of a segment of length tmax − w for end s + p
-        dur_rev = jnp.asarray(log_durations, dtype).T[::-1]  # (Wn, N): w -> length tmax − w
-        gather = jnp.arange(P)[:, None] + jnp.arange(Wn)[None, :]  # (P, Wn)
-
-    def windowed_max(win: Array) -> Array:
-        if log_durations is None:
-            return jax.lax.reduce_window(win, neg, jax.lax.max, (Wn, 1), (1, 1), "VALID")
-        gathered = P * Wn * n_t * jnp.dtype(dtype).itemsize
-        if gathered <= _GATHER_MAX_BYTES or Wn > _UNROLL_MAX_LENGTHS:
-            return jnp.max(win[gather] + dur_rev[None], axis=1)  # (P, N)
-        # max over w of win[p + w] + dur_rev[w]: an unrolled chain of shifted slices, which
-        # XLA fuses into one pass (a large gathered (P, Wn, N) array is written and re-read;
-        # 0.57 -> 0.38 s for 56 textons on the 51 clips of 49,708 frames)
-        out = win[:P] + dur_rev[0]
-        for w in range(1, Wn):
-            out = jnp.maximum(out, win[w : w + P] + dur_rev[w])
-        return out  # (P, N)
-
-    def block(bbuf, s):
-        win = jax.lax.dynamic_slice(bbuf, (s + 1, 0), (tmax, n_t))  # b in [s − tmax + 1, s]
-        wmax = windowed_max(win)  # (P, N)
-        v = jax.lax.dynamic_slice(a_all, (s, 0), (P, n_t)) + wmax
-        v = jnp.where((s + jnp.arange(P) < T)[:, None], v, neg)
-        h = jnp.max(v[:, :, None] + log_M[None], axis=1)  # H(e, i) = max_l V(e, l) + log M[l, i]
-        bnew = jax.lax.dynamic_slice(b0_all, (s + 1, 0), (P, n_t)) + h
-        bbuf = jax.lax.dynamic_update_slice(bbuf, bnew, (tmax + s + 1, 0))
-        return bbuf, v
-
-    bbuf, V = jax.lax.scan(block, bbuf, jnp.arange(nb) * P)
-    V = V.reshape(Tp, n_t)
+    sr = MaxPlus(log_M, log_durations, tmin, tmax, n_t, dtype)
+    bbuf, V = semi_markov_values(scorer, log_pi, sr)
     last = n_valid - 1
     v_last = V[last]
     i_last = jnp.argmax(v_last).astype(jnp.int32)
     score = v_last[i_last]
     K = T // tmin + 1
     r = jnp.arange(tmax)
-    if log_durations is not None:  # (tmax, N): row r = length tmax − r (−inf past tmin)
-        dur_col = jnp.concatenate([dur_rev, jnp.full((tmax - Wn, n_t), neg, dtype)], axis=0)
+    if sr.dur_rev is not None:  # (tmax, N): row r = length tmax − r (−inf past tmin)
+        dur_col = jnp.concatenate([sr.dur_rev, jnp.full((tmax - Wn, n_t), neg, dtype)], axis=0)
 
     def back(carry, _):
         # recompute the arg-maxima along the optimal path only (no back-pointer tables)
