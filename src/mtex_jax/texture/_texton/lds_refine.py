@@ -27,10 +27,8 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 import numpy as np
 import optimistix as optx
-from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .checks import (
@@ -38,121 +36,14 @@ from .checks import (
     check_finite,
     check_mask,
     check_positive,
-    error_if_nonfinite,
     float_dtype,
-    sym,
 )
+from .likelihood import check_kalman, kalman_log_likelihood
 from .texton import Texton, check_texton
 
-__all__ = ["RefineReport", "exact_log_likelihood_segments", "refine_texton"]
+__all__ = ["RefineReport", "refine_texton"]
 
 LOG_2PI = math.log(2.0 * math.pi)
-
-
-# --------------------------------------------------------------------------------------------
-# Exact likelihood of many segments in one masked scan
-# --------------------------------------------------------------------------------------------
-
-
-def exact_log_likelihood_segments(
-    texton: Texton, Y: ArrayLike, mask: ArrayLike | None = None
-) -> Float[Array, ""]:
-    """Sum over segments of the exact LDS log-likelihood, in one ``lax.scan`` over frames.
-
-    Equals ``Σ_segments exact_log_likelihood(texton, Y[segment])`` (a segment is a maximal
-    run of equal non-negative ids; sequences of a batched input never connect; frames with id
-    ``-1`` are skipped). Each segment starts from ``[x_b; x_{b+1}] ~ N(m0, S0)``. The filter is
-    sequential: at a segment start the prior pair is updated with ``z_b`` (observing its first
-    block), at the second frame with ``z_{b+1}``, and afterwards predict/update as in
-    :func:`mtex_jax.texture.exact_log_likelihood`. A one-frame segment contributes the
-    marginal density of its frame. Static shapes: new data of the same shape do not recompile.
-
-    Args:
-        texton: a single texton.
-        Y: ``(T, D)`` or ``(S, T, D)`` observations.
-        mask: segment ids with Y's leading shape (``-1`` = unused), ``None`` = one segment per
-            sequence.
-
-    Returns:
-        Scalar log-likelihood.
-    """
-    texton = check_texton("texton", texton, stacked=False)
-    Y = as_float_array("Y", Y, (2, 3), "(T, D) or (S, T, D)")
-    if Y.shape[-1] != texton.obs_dim:
-        raise ValueError(f"Y has shape {tuple(Y.shape)}, the texton expects D={texton.obs_dim}")
-    check_finite("Y", Y)
-    mask = check_mask(mask, tuple(Y.shape[:-1]))
-    return _segments_ll_jit(texton, Y, mask)
-
-
-def _segments_ll_seq(tex: Texton, Y: Array, ids: Array) -> Array:
-    dtype = Y.dtype
-    D, k = tex.C.shape
-    s2 = tex.sigma2
-    T = Y.shape[0]
-    used = ids >= 0
-    prev = jnp.concatenate([jnp.full((1,), -2, ids.dtype), ids[:-1]])
-    start = used & (prev != ids)
-    second = used & ~start & jnp.concatenate([jnp.zeros((1,), bool), start[:-1]])
-
-    Yc = Y - tex.mu
-    Z = Yc @ tex.C
-    ll_res = jnp.asarray(0.0, dtype)
-    if D > k:
-        Rres = Yc - Z @ tex.C.T
-        r2 = jnp.sum(Rres * Rres, axis=1)
-        per = -0.5 * ((D - k) * (LOG_2PI + jnp.log(s2)) + r2 / s2)
-        ll_res = jnp.sum(jnp.where(used, per, 0.0))
-
-    eye_k = jnp.eye(k, dtype=dtype)
-    eye_2k = jnp.eye(2 * k, dtype=dtype)
-    F = jnp.block([[tex.A1, tex.A2], [eye_k, jnp.zeros((k, k), dtype)]])
-    dvec = jnp.concatenate([tex.d, jnp.zeros((k,), dtype)])
-    Qfull = jnp.zeros((2 * k, 2 * k), dtype).at[:k, :k].set(tex.B @ tex.B.T)
-    perm = jnp.concatenate([jnp.arange(k, 2 * k), jnp.arange(k)])
-    S0 = sym(tex.S0)
-
-    def step(carry: tuple[Array, Array, Array], inp: tuple[Array, ...]) -> tuple[Any, None]:
-        m, P, ll = carry
-        z, is_used, is_start, is_second = inp
-        m_pred = F @ m + dvec
-        P_pred = F @ P @ F.T + Qfull
-        m_pri = jnp.where(is_start, tex.m0, jnp.where(is_second, m, m_pred))
-        P_pri = jnp.where(is_start, S0, jnp.where(is_second, P, P_pred))
-        # update with z = x_top + e, e ~ N(0, σ² I_k)
-        Sk = sym(P_pri[:k, :k]) + s2 * eye_k
-        Lk = jnp.linalg.cholesky(Sk)
-        v = z - m_pri[:k]
-        u = jsl.solve_triangular(Lk, v, lower=True)
-        ll_t = -0.5 * (k * LOG_2PI + 2.0 * jnp.sum(jnp.log(jnp.diagonal(Lk))) + u @ u)
-        K = jsl.cho_solve((Lk, True), P_pri[:k, :]).T
-        m_new = m_pri + K @ v
-        IKH = eye_2k.at[:, :k].add(-K)
-        P_new = sym(IKH @ P_pri @ IKH.T + s2 * (K @ K.T))
-        # after the first frame of a segment, reorder [x_b; x_{b+1}] -> [x_{b+1}; x_b]
-        m_new = jnp.where(is_start, m_new[perm], m_new)
-        P_new = jnp.where(is_start, P_new[perm][:, perm], P_new)
-        m_out = jnp.where(is_used, m_new, m)
-        P_out = jnp.where(is_used, P_new, P)
-        ll_out = ll + jnp.where(is_used, ll_t, 0.0)
-        return (m_out, P_out, ll_out), None
-
-    init = (tex.m0, S0, jnp.asarray(0.0, dtype))
-    (_, _, ll), _ = lax.scan(step, init, (Z, used, start, second), length=T)
-    return ll + ll_res
-
-
-def _segments_ll_impl(tex: Texton, Y: Array, mask: Array) -> Array:
-    Y = error_if_nonfinite(Y, "Y")
-    dtype = float_dtype(Y, tex.mu)
-    Y = Y.astype(dtype)
-    tex = jax.tree.map(lambda a: a.astype(dtype), tex)
-    if Y.ndim == 2:
-        return _segments_ll_seq(tex, Y, mask)
-    return jnp.sum(jax.vmap(_segments_ll_seq, in_axes=(None, 0, 0))(tex, Y, mask))
-
-
-_segments_ll_jit = eqx.filter_jit(_segments_ll_impl)
 
 
 # --------------------------------------------------------------------------------------------
@@ -238,8 +129,13 @@ def refine_texton(
         ``(refined texton, RefineReport)``. The refined texton's exact log-likelihood is never
         below the input's: if the optimiser does not improve it, the input is returned and
         ``report.accepted`` is ``False``.
+
+    Raises:
+        ValueError: for a texton whose likelihood is not the Kalman one (Student-t
+            innovations, or an observation model without that form such as the residual
+            AR(2)): the refinement would maximise another model's likelihood.
     """
-    texton = check_texton("texton", texton, stacked=False)
+    texton = check_kalman(check_texton("texton", texton, stacked=False))
     Y = as_float_array("Y", Y, (2, 3), "(T, D) or (S, T, D)")
     if Y.shape[-1] != texton.obs_dim:
         raise ValueError(f"Y has shape {tuple(Y.shape)}, the texton expects D={texton.obs_dim}")
@@ -262,14 +158,14 @@ def _refine_impl(
     scale = jnp.maximum(n_frames, 1.0)
 
     def loss(theta: dict[str, Array], _: Any) -> Array:
-        return -_segments_ll_impl(_unpack(theta, tex), Y, mask) / scale
+        return -kalman_log_likelihood(_unpack(theta, tex), Y, mask) / scale
 
     theta0 = _pack(tex)
     solver = optx.BFGS(rtol=rtol, atol=atol)
     sol = optx.minimise(loss, solver, theta0, max_steps=max_steps, throw=False)
     new = _unpack(sol.value, tex)
-    ll_before = _segments_ll_impl(tex, Y, mask)
-    ll_after = _segments_ll_impl(new, Y, mask)
+    ll_before = kalman_log_likelihood(tex, Y, mask)
+    ll_after = kalman_log_likelihood(new, Y, mask)
     accept = jnp.isfinite(ll_after) & (ll_after >= ll_before)
     out = jax.tree.map(lambda a, b: jnp.where(accept, a, b), new, tex)
     report = RefineReport(
