@@ -285,10 +285,10 @@ def test_each_name_is_exported_by_one_subpackage():
 
 
 def test_type_checking_imports_are_edges():
-    """``base.py`` imports the fit options only under ``TYPE_CHECKING``; the graph sees it."""
+    """``base.py`` imports the statistics types only under ``TYPE_CHECKING``; the graph sees it."""
     base = SRC / "texture" / "_observation" / "base.py"
     assert "if TYPE_CHECKING:" in base.read_text()
-    assert "mtex_jax.texture._texton.options" in {m for m, _ in _import_edges(base)}
+    assert "mtex_jax.texture._texton.stats" in {m for m, _ in _import_edges(base)}
 
 
 def test_cycle_finder_sees_a_cycle():

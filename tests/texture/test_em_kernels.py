@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from mtex_jax.texture import fit_texton, segment_scores, stack_textons
+from mtex_jax.texture import (
+    FullObservation,
+    fit_texton,
+    observation_model,
+    segment_scores,
+    stack_textons,
+)
 from mtex_jax.texture._learning.mstep import fit_all
 from mtex_jax.texture._scoring.packing import pack_clips
 from mtex_jax.texture._scoring.rows import CHUNK_ROWS, row_chunks, rows_score
@@ -30,7 +36,11 @@ def _data(observation: str):
     D = 6
     k = D if observation == "full" else 2
     texs = [
-        fit_texton(jnp.asarray(_smooth(rng, 150, D)), state_dim=k, observation=observation)
+        fit_texton(
+            jnp.asarray(_smooth(rng, 150, D)),
+            state_dim=k,
+            observation=observation_model(observation),
+        )
         for _ in range(3)
     ]
     Y = np.zeros((3, 140, D))  # three sequences, two of them padded with zeros
@@ -179,7 +189,7 @@ def test_chunked_m_step_equals_per_texton_fits(observation, dof):
     padded[:n_real] = rows
     labels, groups = row_chunks(rows[:, 3], 16)  # the real rows only, 16 chunks
     assert np.bincount(labels[groups[:, 0] >= 0]).min() >= 2  # several chunks per texton
-    opts = SolveOptions.make(1e-6, 1e-6, None, 4.0, observation, 1e-6, dof=dof)
+    opts = SolveOptions.make(1e-6, 1e-6, None, 4.0, observation_model(observation), 1e-6, dof=dof)
     chunks = (jnp.asarray(labels), jnp.asarray(groups))
     got = fit_all(jnp.asarray(Y), jnp.asarray(padded), chunks, 3, 14, k, 1e-6, opts)
     assert got.dof == dof
@@ -189,7 +199,11 @@ def test_chunked_m_step_equals_per_texton_fits(observation, dof):
             if lab == i:
                 mask[s, b : b + n] = r
         want = fit_texton(
-            jnp.asarray(Y), jnp.asarray(mask), state_dim=k, observation=observation, dof=dof
+            jnp.asarray(Y),
+            jnp.asarray(mask),
+            state_dim=k,
+            observation=observation_model(observation),
+            dof=dof,
         )
         one = jax.tree.map(lambda a, i=i: a[i], got)
         for name in ("mu", "A1", "A2", "d", "sigma2", "B", "m0", "S0"):
@@ -214,7 +228,7 @@ def test_e_step_skips_the_padding_textons_of_a_full_stack(cap):
     rng = np.random.default_rng(5)
     D = 6
     texs = [
-        fit_texton(jnp.asarray(_smooth(rng, 150, D)), state_dim=D, observation="full")
+        fit_texton(jnp.asarray(_smooth(rng, 150, D)), state_dim=D, observation=FullObservation())
         for _ in range(5)
     ]
     n = len(texs)

@@ -16,6 +16,7 @@ import scipy.stats as st
 
 import mtex_jax as mj
 from mtex_jax.texture import (
+    FullObservation,
     InnovationProcess,
     LearnConfig,
     draw_innovations,
@@ -196,7 +197,7 @@ def test_synthesize_texton_draws_from_a_process():
     """Noise-driven: the texton's recursion (numpy) driven by ``draw_innovations`` with the
     same key; constrained: the end frames held; a bad process is a TypeError."""
     y = _clips(1)[0]
-    t = fit_texton(jnp.asarray(y), state_dim=3, observation="full", dof=4.0)
+    t = fit_texton(jnp.asarray(y), state_dim=3, observation=FullObservation(), dof=4.0)
     p = _process()
     start = y[:2]
     key = jax.random.key(7)

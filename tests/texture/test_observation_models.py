@@ -17,12 +17,16 @@ from scipy.stats import multivariate_normal
 import mtex_jax as mj
 from dp_problems import compositions
 from mtex_jax.texture import (
+    FullObservation,
+    PaperObservation,
+    ResidualObservation,
     Texton,
     choose_state_dim,
     fit_durations,
     fit_texton,
     frame_terms,
     init_terms,
+    observation_model,
     sample_texton,
     segment,
     segment_log_likelihood,
@@ -49,21 +53,20 @@ def test_residual_mstep_is_least_squares():
     rng = np.random.default_rng(0)
     Y = _smooth(rng, 200, 7)
     k = 3
-    tex = fit_texton(jnp.asarray(Y), state_dim=k, observation="residual", ridge=0.0)
-    assert tex.observation == "residual"
+    tex = fit_texton(jnp.asarray(Y), state_dim=k, observation=ResidualObservation(), ridge=0.0)
+    assert tex.observation.name == "residual"
     # numpy: the residual outside the fitted subspace, pooled over its coordinates
     C, mu = np.asarray(tex.C), np.asarray(tex.mu)
     R = (Y - mu) - (Y - mu) @ C @ C.T
     X = np.stack([R[1:-1].ravel(), R[:-2].ravel()], axis=1)
     a, *_ = np.linalg.lstsq(X, R[2:].ravel(), rcond=None)
-    np.testing.assert_allclose(np.asarray(tex.res_a), a, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(tex.observation.a), a, rtol=1e-6, atol=1e-9)
     e = R[2:].ravel() - X @ a
-    np.testing.assert_allclose(float(tex.res_s2), e @ e / ((200 - 2) * (7 - k)), rtol=1e-6)
+    np.testing.assert_allclose(float(tex.observation.s2), e @ e / ((200 - 2) * (7 - k)), rtol=1e-6)
     # the subspace and dynamics are the paper's fit
     paper = fit_texton(jnp.asarray(Y), state_dim=k, ridge=0.0)
     np.testing.assert_allclose(np.asarray(paper.A1), np.asarray(tex.A1), atol=1e-10)
-    np.testing.assert_allclose(float(paper.res_a[0]), 0.0)
-    np.testing.assert_allclose(float(paper.res_s2), float(paper.sigma2))
+    assert paper.observation == PaperObservation()  # no parameters beyond σ²
 
 
 def test_residual_mstep_over_segments_pools_valid_triples():
@@ -72,7 +75,7 @@ def test_residual_mstep_over_segments_pools_valid_triples():
     Y = _smooth(rng, 120, 6)
     mask = np.repeat([0, 1], 60)
     tex = fit_texton(
-        jnp.asarray(Y), jnp.asarray(mask), state_dim=2, observation="residual", ridge=0.0
+        jnp.asarray(Y), jnp.asarray(mask), state_dim=2, observation=ResidualObservation(), ridge=0.0
     )
     C, mu = np.asarray(tex.C), np.asarray(tex.mu)
     R = (Y - mu) - (Y - mu) @ C @ C.T
@@ -83,21 +86,21 @@ def test_residual_mstep_over_segments_pools_valid_triples():
         tgt.append(r[2:].ravel())
     X, t = np.concatenate(rows), np.concatenate(tgt)
     a = np.linalg.solve(X.T @ X, X.T @ t)
-    np.testing.assert_allclose(np.asarray(tex.res_a), a, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(tex.observation.a), a, rtol=1e-4)
 
 
 def test_full_texton_is_ar2_on_y():
     """k = D: no residual; the dynamics are the least-squares AR(2) of y (rotated)."""
     rng = np.random.default_rng(2)
     Y = _smooth(rng, 300, 4)
-    tex = fit_texton(jnp.asarray(Y), state_dim=4, observation="full", ridge=0.0)
+    tex = fit_texton(jnp.asarray(Y), state_dim=4, observation=FullObservation(), ridge=0.0)
     A1, A2, C = (np.asarray(getattr(tex, f)) for f in ("A1", "A2", "C"))
     X = np.concatenate([Y[1:-1], Y[:-2], np.ones((298, 1))], axis=1)
     coef, *_ = np.linalg.lstsq(X, Y[2:], rcond=None)
     np.testing.assert_allclose(C @ A1 @ C.T, coef[:4].T, atol=1e-6)
     np.testing.assert_allclose(C @ A2 @ C.T, coef[4:8].T, atol=1e-6)
     with pytest.raises(ValueError, match="full"):
-        fit_texton(jnp.asarray(Y), state_dim=3, observation="full")
+        fit_texton(jnp.asarray(Y), state_dim=3, observation=FullObservation())
 
 
 # --------------------------------------------------------------------------------------------
@@ -105,8 +108,8 @@ def test_full_texton_is_ar2_on_y():
 # --------------------------------------------------------------------------------------------
 def _residual_texton(rng, D=4, k=2):
     Y = _smooth(rng, 150, D)
-    tex = fit_texton(jnp.asarray(Y), state_dim=k, observation="residual")
-    assert abs(float(tex.res_a[0])) > 0.1  # a real residual AR(2), not white noise
+    tex = fit_texton(jnp.asarray(Y), state_dim=k, observation=ResidualObservation())
+    assert abs(float(tex.observation.a[0])) > 0.1  # a real residual AR(2), not white noise
     return tex, Y
 
 
@@ -122,8 +125,8 @@ def _dense_logpdf(tex: Texton, Y: np.ndarray) -> float:
     P = q[:, k:D]
     A1, A2, d, B = (np.asarray(getattr(tex, f)) for f in ("A1", "A2", "d", "B"))
     m0, S0 = np.asarray(tex.m0), np.asarray(tex.S0)
-    a1, a2 = np.asarray(tex.res_a)
-    s2, sr2 = float(tex.sigma2), float(tex.res_s2)
+    a1, a2 = np.asarray(tex.observation.a)
+    s2, sr2 = float(tex.sigma2), float(tex.observation.s2)
     r = D - k
     n_in = 2 * k + (L - 2) * k + 2 * r + (L - 2) * r  # innovations, all standard normal
     L0 = np.linalg.cholesky(S0)
@@ -290,9 +293,9 @@ def test_duration_viterbi_long_length_ranges_equal_numpy_dp(
     """Length ranges below and above the unrolled windowed maximum (``Wn`` 38 and 298), with
     the window gathered or (``gather_max_bytes = 0``, ``Wn`` 38) the unrolled chain of
     shifted slices, against an independent numpy DP on the same segment scores."""
-    from mtex_jax.texture._segmentation import segment as _segment
+    from mtex_jax.texture._segmentation import recursion as _recursion
 
-    monkeypatch.setattr(_segment, "_GATHER_MAX_BYTES", gather_max_bytes)
+    monkeypatch.setattr(_recursion, "_GATHER_MAX_BYTES", gather_max_bytes)
     jax.clear_caches()  # the choice is made when tracing: trace again with this setting
     rng = np.random.default_rng(tmax)
     texs = [_residual_texton(np.random.default_rng(s), D=4, k=2)[0] for s in (1, 2)]
@@ -340,11 +343,11 @@ def test_choose_state_dim_loglik_matches_the_fitted_texton():
     rng = np.random.default_rng(6)
     ys = [_smooth(rng, 400, 8)]
     for obs in ("paper", "residual"):
-        _, table = choose_state_dim(ys, obs, candidates=[3], ridge=0.0)
+        _, table = choose_state_dim(ys, observation_model(obs), candidates=[3], ridge=0.0)
         tex = fit_texton(
             jnp.asarray(ys[0]),
             state_dim=3,
-            observation=obs,
+            observation=observation_model(obs),
             ridge=0.0,
             q_floor=1e-12,
             sigma2_floor=1e-12,
@@ -372,7 +375,7 @@ def test_learn_defaults_are_stable_tied_with_durations(default_texture):
     cfg = tex.config
     assert cfg.observation == "tied" and cfg.durations == "lognormal" and cfg.init == "chunks"
     assert cfg.state_dim == 5 and cfg.dof == 4.0
-    assert tex.textons.observation == "tied"
+    assert tex.textons.observation.name == "tied"
     assert tex.log_durations is not None and tex.log_durations.shape == (tex.n_textons, 41)
     np.testing.assert_allclose(np.exp(np.asarray(tex.log_durations)).sum(1), 1.0, rtol=1e-9)
     assert float(jnp.max(spectral_radius(tex.textons))) <= 1.0 + 1e-9
@@ -424,9 +427,11 @@ def test_learned_models_round_trip_and_old_files_load_as_paper(tmp_path):
     p = tmp_path / "t.npz"
     tex.save(p)
     back = mj.load_texture(p)
-    assert back.textons.observation == "residual"
+    assert back.textons.observation.name == "residual"
     np.testing.assert_array_equal(np.asarray(back.log_durations), np.asarray(tex.log_durations))
-    np.testing.assert_allclose(np.asarray(back.textons.res_a), np.asarray(tex.textons.res_a))
+    np.testing.assert_allclose(
+        np.asarray(back.textons.observation.a), np.asarray(tex.textons.observation.a)
+    )
     Y = jnp.asarray(ys[0])
     assert back.log_likelihood(Y) == pytest.approx(tex.log_likelihood(Y), rel=1e-12)
     # a file of the previous format: no residual arrays, durations or observation fields
@@ -447,7 +452,7 @@ def test_learned_models_round_trip_and_old_files_load_as_paper(tmp_path):
     stripped = tmp_path / "stripped.npz"
     mj.core.save_arrays_json(stripped, arrays, meta)
     got = mj.load_texture(stripped)
-    assert got.textons.observation == "paper" and got.config.durations == "flat"
+    assert got.textons.observation.name == "paper" and got.config.durations == "flat"
     assert got.log_likelihood(Y) == pytest.approx(paper.log_likelihood(Y), rel=1e-12)
 
 
@@ -455,7 +460,7 @@ def test_full_observation_learns_ar_hsmm():
     ys = _clips(2, D=4)
     tex = mj.learn(ys, mj.LearnConfig(tmin=20, tmax=60, max_iter=2, observation="full"))
     assert tex.textons.state_dim == 4 == tex.config.state_dim
-    assert tex.textons.observation == "full"
+    assert tex.textons.observation.name == "full"
     with pytest.raises(ValueError, match="full"):
         mj.learn(ys, mj.LearnConfig(tmin=20, tmax=60, observation="full", state_dim=2))
 

@@ -16,6 +16,7 @@ from jax.test_util import check_grads
 
 import mtex_jax as mj
 from mtex_jax.texture import (
+    FullObservation,
     LearnConfig,
     exact_log_likelihood,
     fit_texton,
@@ -62,7 +63,7 @@ def test_fit_texton_student_equals_numpy_irls(nu):
     D = 3
     Y = _heavy(rng, 500, D)
     tex = fit_texton(
-        jnp.asarray(Y), state_dim=D, observation="full", dof=nu, ridge=0.0, q_floor=1e-12
+        jnp.asarray(Y), state_dim=D, observation=FullObservation(), dof=nu, ridge=0.0, q_floor=1e-12
     )
     W, S = _irls_numpy(Y, nu, 10)
     C = np.asarray(tex.C)  # the texton's state is x = Cᵀ(y − μ): rotate back to y
@@ -71,7 +72,7 @@ def test_fit_texton_student_equals_numpy_irls(nu):
     np.testing.assert_allclose(C @ np.asarray(tex.Q) @ C.T, S, atol=1e-9)
     assert tex.dof == nu
     # the Gaussian fit's Q is inflated by the rare large innovations; the t's scale is not
-    gauss = fit_texton(jnp.asarray(Y), state_dim=D, observation="full")
+    gauss = fit_texton(jnp.asarray(Y), state_dim=D, observation=FullObservation())
     assert np.trace(np.asarray(tex.Q)) < 0.8 * np.trace(np.asarray(gauss.Q))
 
 
@@ -82,7 +83,7 @@ def test_irls_steps_reach_the_t_maximum_likelihood():
     Y = _heavy(rng, 800, 3)
     _, S10 = _irls_numpy(Y, 4.0, 10)
     _, S40 = _irls_numpy(Y, 4.0, 40)
-    tex = fit_texton(jnp.asarray(Y), state_dim=3, observation="full", dof=4.0)
+    tex = fit_texton(jnp.asarray(Y), state_dim=3, observation=FullObservation(), dof=4.0)
     C = np.asarray(tex.C)
     np.testing.assert_allclose(C @ np.asarray(tex.Q) @ C.T, S40, rtol=2e-3, atol=1e-6)
     assert np.abs(S10 - S40).max() < 2e-3 * np.abs(S40).max()
@@ -92,7 +93,7 @@ def test_student_terms_equal_scipy_multivariate_t():
     rng = np.random.default_rng(2)
     T, D, nu = 50, 3, 4.0
     Y = _heavy(rng, T, D)
-    tex = fit_texton(jnp.asarray(Y[:40]), state_dim=D, observation="full", dof=nu)
+    tex = fit_texton(jnp.asarray(Y[:40]), state_dim=D, observation=FullObservation(), dof=nu)
     X = (Y - np.asarray(tex.mu)) @ np.asarray(tex.C)
     A1, A2, d, Q = (np.asarray(a) for a in (tex.A1, tex.A2, tex.d, tex.Q))
     dyn_ref = np.array(
@@ -107,7 +108,7 @@ def test_student_terms_equal_scipy_multivariate_t():
     got = float(segment_log_likelihood(tex, jnp.asarray(Y)))
     np.testing.assert_allclose(got, init_ref + dyn_ref.sum(), rtol=1e-10)
     stack = stack_textons(
-        [tex, fit_texton(jnp.asarray(Y[10:]), state_dim=D, observation="full", dof=nu)]
+        [tex, fit_texton(jnp.asarray(Y[10:]), state_dim=D, observation=FullObservation(), dof=nu)]
     )
     dyn, obs = frame_terms(stack, jnp.asarray(Y))  # the blocked full-dimensional kernel
     np.testing.assert_allclose(np.asarray(dyn)[0, 2:], dyn_ref, rtol=1e-10)
@@ -121,7 +122,7 @@ def test_student_terms_equal_scipy_multivariate_t():
 def test_student_segment_log_likelihood_gradients():
     rng = np.random.default_rng(3)
     Y = jnp.asarray(_heavy(rng, 30, 2))
-    tex = fit_texton(Y, state_dim=2, observation="full", dof=5.0)
+    tex = fit_texton(Y, state_dim=2, observation=FullObservation(), dof=5.0)
     check_grads(lambda y: segment_log_likelihood(tex, y), (Y,), order=1, modes=("rev",))
 
 
@@ -136,7 +137,9 @@ def test_sample_texton_draws_t_innovations():
     # F(k, ν) and each component ~ t_ν; a Gaussian texton's have ‖u‖² ~ χ²_k
     rng = np.random.default_rng(4)
     D, nu = 2, 4.0
-    tex = fit_texton(jnp.asarray(_heavy(rng, 400, D)), state_dim=D, observation="full", dof=nu)
+    tex = fit_texton(
+        jnp.asarray(_heavy(rng, 400, D)), state_dim=D, observation=FullObservation(), dof=nu
+    )
     x, _ = sample_texton(jax.random.key(0), tex, 20_000, observation_noise=False)
     U = _whitened_innovations(tex, x)
     q = np.sum(U * U, axis=1)
@@ -158,7 +161,7 @@ def test_student_config_checks():
     rng = np.random.default_rng(5)
     with pytest.raises(ValueError, match=r"model that takes them \(full, tied\), got 'paper'"):
         fit_texton(jnp.asarray(_heavy(rng, 100, 3)), state_dim=2, dof=4.0)
-    tex = fit_texton(jnp.asarray(_heavy(rng, 100, 3)), state_dim=3, observation="full")
+    tex = fit_texton(jnp.asarray(_heavy(rng, 100, 3)), state_dim=3, observation=FullObservation())
     with pytest.raises(ValueError, match="dof"):
         stack_textons([tex, dataclasses.replace(tex, dof=4.0)])
 
@@ -201,7 +204,7 @@ def test_dof_applies_to_full_dimensional_textons_only():
 
 def test_student_float32_smoke():
     ys = [y.astype(np.float32) for y in _clips(8)]
-    tex = fit_texton(jnp.asarray(ys[0]), state_dim=4, observation="full", dof=4.0)
+    tex = fit_texton(jnp.asarray(ys[0]), state_dim=4, observation=FullObservation(), dof=4.0)
     assert tex.A1.dtype == jnp.float32
     ll = segment_log_likelihood(tex, jnp.asarray(ys[1]))
     assert ll.dtype == jnp.float32 and np.isfinite(float(ll))
@@ -224,9 +227,14 @@ def test_warm_started_m_step_is_one_weighted_least_squares():
     rows = np.array([(s, b, 50, (s + b // 50) % 2) for s in range(S) for b in range(0, T, 50)])
     labels, groups = row_chunks(rows[:, 3], 8)
     chunks = (jnp.asarray(labels), jnp.asarray(groups))
-    opts = SolveOptions.make(0.0, 1e-12, None, 4.0, "full", 1e-6, dof=nu)
+    opts = SolveOptions.make(0.0, 1e-12, None, 4.0, FullObservation(), 1e-6, dof=nu)
     prev = stack_textons(
-        [fit_texton(jnp.asarray(_heavy(rng, 400, D)), state_dim=D, observation="full", dof=nu)] * 2
+        [
+            fit_texton(
+                jnp.asarray(_heavy(rng, 400, D)), state_dim=D, observation=FullObservation(), dof=nu
+            )
+        ]
+        * 2
     )
     got = fit_all(jnp.asarray(Y), jnp.asarray(rows), chunks, 2, 50, D, 1e-6, opts, prev)
     for i in range(2):
@@ -270,7 +278,7 @@ def test_cold_and_warm_m_steps_share_one_program():
     rows = np.array([(s, b, 50, (s + b // 50) % 2) for s in range(S) for b in range(0, T, 50)])
     labels, groups = row_chunks(rows[:, 3], 8)
     chunks = (jnp.asarray(labels), jnp.asarray(groups))
-    opts = SolveOptions.make(0.0, 1e-12, None, 4.0, "full", 1e-6, dof=nu)
+    opts = SolveOptions.make(0.0, 1e-12, None, 4.0, FullObservation(), 1e-6, dof=nu)
     args = (Y, jnp.asarray(rows), chunks, 2, 50, D, 1e-6, opts)
     fit = eqx.filter_jit(_fit_all_impl)
     cold_sep = fit(*args)

@@ -13,7 +13,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mtex_jax.texture import OBSERVATION_MODELS, choose_state_dim, fit_texton, observation_model
+from mtex_jax.texture import (
+    OBSERVATION_MODELS,
+    FullObservation,
+    TiedObservation,
+    choose_state_dim,
+    fit_texton,
+    observation_model,
+)
 from mtex_jax.texture._learning.mstep import fit_all
 from mtex_jax.texture._observation.tied import INIT_STARTS, IW_FRAMES
 from mtex_jax.texture._scoring.rows import row_chunks
@@ -115,7 +122,7 @@ def test_tied_is_registered_and_full_dimensional():
     # its state dimension is fixed (k = D): there is none to choose
     ys = [np.random.default_rng(0).normal(size=(50, D))]
     with pytest.raises(ValueError, match="fixed state dimension"):
-        choose_state_dim(ys, "tied")
+        choose_state_dim(ys, model)
 
 
 def test_tied_m_step_equals_numpy_rederivation():
@@ -125,7 +132,7 @@ def test_tied_m_step_equals_numpy_rederivation():
     D, n_tex = 4, 3
     Y, rows = _problem(D=D, n_tex=n_tex)
     labels, groups = row_chunks(rows[:, 3], 8)
-    opts = SolveOptions.make(RIDGE, Q_FLOOR, None, 4.0, "tied", 1e-6)
+    opts = SolveOptions.make(RIDGE, Q_FLOOR, None, 4.0, TiedObservation(), 1e-6)
     got = fit_all(
         jnp.asarray(Y),
         jnp.asarray(rows),
@@ -158,7 +165,9 @@ def test_tied_m_step_equals_numpy_rederivation():
         for r, (s, b, n, lab) in enumerate(rows):
             if lab == i:
                 mask[s, b : b + n] = r
-        own = fit_texton(jnp.asarray(Y), jnp.asarray(mask), state_dim=D, observation="full")
+        own = fit_texton(
+            jnp.asarray(Y), jnp.asarray(mask), state_dim=D, observation=FullObservation()
+        )
         np.testing.assert_allclose(t.mu, np.asarray(own.mu), rtol=1e-9, atol=1e-12)
 
 
@@ -167,7 +176,7 @@ def test_tied_student_t_m_step_is_finite_and_tied(dof):
     D, n_tex = 4, 3
     Y, rows = _problem(D=D, n_tex=n_tex, seed=3)
     labels, groups = row_chunks(rows[:, 3], 8)
-    opts = SolveOptions.make(RIDGE, Q_FLOOR, 0.999, 4.0, "tied", 1e-6, dof=dof)
+    opts = SolveOptions.make(RIDGE, Q_FLOOR, 0.999, 4.0, TiedObservation(), 1e-6, dof=dof)
     got = fit_all(
         jnp.asarray(Y),
         jnp.asarray(rows),
@@ -178,7 +187,7 @@ def test_tied_student_t_m_step_is_finite_and_tied(dof):
         1e-6,
         opts,
     )
-    assert got.dof == dof and got.observation == "tied"
+    assert got.dof == dof and got.observation.name == "tied"
     A1y = [np.asarray(got.C[i] @ got.A1[i] @ got.C[i].T) for i in range(n_tex)]
     for a in A1y[1:]:
         np.testing.assert_allclose(a, A1y[0], rtol=1e-8, atol=1e-10)

@@ -46,11 +46,12 @@ def _predict_labelled(textons: Texton, labels: Array, Y: Array) -> Array:
     x1 = jnp.einsum("tdk,td->tk", tex.C, z1)
     x2 = jnp.einsum("tdk,td->tk", tex.C, z2)
     xh = jnp.einsum("tij,tj->ti", tex.A1, x1) + jnp.einsum("tij,tj->ti", tex.A2, x2) + tex.d
-    # the residual's own AR(2) ("residual" textons; a = 0 for the others)
+    pred = tex.mu + jnp.einsum("tdk,tk->td", tex.C, xh)
+    # the residual's own prediction (the residual AR(2); none for a white residual)
     r1 = z1 - jnp.einsum("tdk,tk->td", tex.C, x1)
     r2 = z2 - jnp.einsum("tdk,tk->td", tex.C, x2)
-    rh = tex.res_a[:, :1] * r1 + tex.res_a[:, 1:] * r2
-    return tex.mu + jnp.einsum("tdk,tk->td", tex.C, xh) + rh
+    rh = tex.observation.predict_residual(r1, r2)
+    return pred if rh is None else pred + rh
 
 
 def take(textons: Texton, idx: Int[Array, " n"]) -> Texton:

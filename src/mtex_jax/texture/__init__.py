@@ -38,7 +38,11 @@ from ._noise.residual_bank import (
 )
 from ._observation import (
     OBSERVATION_MODELS as OBSERVATION_MODELS,
+    FullObservation as FullObservation,
     ObservationModel as ObservationModel,
+    PaperObservation as PaperObservation,
+    ResidualObservation as ResidualObservation,
+    TiedObservation as TiedObservation,
     observation_model as observation_model,
 )
 from ._scoring.frame_terms import (
@@ -97,11 +101,11 @@ from ._texton.fit import (
 )
 from ._texton.lds_refine import (
     RefineReport as RefineReport,
-    exact_log_likelihood_segments as exact_log_likelihood_segments,
     refine_texton as refine_texton,
 )
 from ._texton.likelihood import (
     exact_log_likelihood as exact_log_likelihood,
+    exact_log_likelihood_segments as exact_log_likelihood_segments,
     segment_log_likelihood as segment_log_likelihood,
 )
 from ._texton.sample import (
@@ -139,17 +143,21 @@ __all__ = [
     "SUCCESSOR_MIN",
     "DynamicsStats",
     "FrameStats",
+    "FullObservation",
     "InnovationProcess",
     "LearnConfig",
     "MotionTexture",
     "ObservationModel",
+    "PaperObservation",
     "RefineReport",
     "ResidualBank",
+    "ResidualObservation",
     "SegmentScorer",
     "Segmentation",
     "Subspace",
     "Synthesis",
     "Texton",
+    "TiedObservation",
     "Vocabulary",
     "bic_select",
     "choose_state_dim",

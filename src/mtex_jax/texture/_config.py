@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from ._observation import observation_model
+from ._observation import ObservationModel, observation_model
 from ._texton.checks import check_dof
 from ._texton.validate import check_config_limits
 
@@ -70,7 +70,8 @@ class LearnConfig:
             vocabulary), ``"residual"`` (the residual outside the state subspace follows its
             own AR(2)), ``"full"`` (``k = D``: untied AR(2) textons on ``y``, an
             autoregressive HSMM) or ``"paper"`` (MT-11: white residual noise); the registry is
-            :data:`OBSERVATION_MODELS`.
+            :data:`OBSERVATION_MODELS`. A member (``ResidualObservation()``) may be given; the
+            config keeps its name, and :attr:`observation_model` is the member.
         durations: segment-length distribution of every texton on ``[tmin, tmax]``:
             ``"lognormal"`` (default: a discretised log-normal fitted in the M-step, mixed
             with 1 % of the flat one) or ``"flat"`` (the paper). With ``tmax=None`` the
@@ -158,6 +159,8 @@ class LearnConfig:
                 f"LearnConfig.tmax must be None or an integer >= tmin = {self.tmin}, "
                 f"got {self.tmax!r}"
             )
+        if isinstance(self.observation, ObservationModel):  # a member: the config keeps its name
+            object.__setattr__(self, "observation", self.observation.name)
         try:
             observation_model(self.observation)
             check_dof(self.dof)
@@ -228,7 +231,12 @@ class LearnConfig:
     def texton_dof(self) -> float | None:
         """The ``dof`` of the textons this config fits: ``dof`` for ``"full"`` ones, else
         ``None`` (textons with ``k < D`` are Gaussian)."""
-        return self.dof if observation_model(self.observation).student_t else None
+        return self.dof if self.observation_model.student_t else None
+
+    @property
+    def observation_model(self) -> ObservationModel:
+        """The member of :attr:`observation` (the model chosen, without parameters)."""
+        return observation_model(self.observation)
 
     @classmethod
     def paper(cls, **overrides: Any) -> LearnConfig:

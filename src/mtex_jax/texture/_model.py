@@ -4,7 +4,6 @@ unpickled)."""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from typing import Any, Literal, overload
 
@@ -19,11 +18,12 @@ from ..motion import ContactModel, FeatureMap, Motion
 from ._config import LearnConfig
 from ._noise.innovation_process import InnovationProcess
 from ._noise.residual_bank import ResidualBank
+from ._observation import observation_model
 from ._segmentation.forward import log_likelihood
 from ._segmentation.many import log_likelihood_many, segment_many
 from ._segmentation.path_terms import best_path_terms
 from ._segmentation.segment import segment
-from ._texton.texton import Texton
+from ._texton.texton import TEXTON_FIELDS, Texton
 from ._texton.validate import TEXTURE_MEMBERS, check_texture_arrays
 from ._vocabulary import Vocabulary, vocabulary
 
@@ -266,10 +266,11 @@ class MotionTexture(eqx.Module):
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write to a ``.npz`` (arrays) with JSON metadata; no pickle."""
+        tex = self.textons
+        member = tex.observation.to_arrays(tex.sigma2)  # its parameters, or the white residual
         arrays: dict[str, Any] = {
-            f"texton.{f.name}": np.asarray(getattr(self.textons, f.name))
-            for f in dataclasses.fields(self.textons)
-            if f.name not in ("observation", "dof")
+            f"texton.{f}": np.asarray(v)
+            for f, v in [*((f, getattr(tex, f)) for f in TEXTON_FIELDS), *member.items()]
         }
         arrays.update(
             M=np.asarray(self.M),
@@ -297,12 +298,8 @@ class MotionTexture(eqx.Module):
             "format_version": FORMAT_VERSION,
             "config": self.config.to_json_dict(),
             "threshold": self.threshold,
-            "texton_fields": [
-                f.name
-                for f in dataclasses.fields(self.textons)
-                if f.name not in ("observation", "dof")
-            ],
-            "observation": self.textons.observation,
+            "texton_fields": [*TEXTON_FIELDS, *member],
+            "observation": self.textons.observation.name,
             "dof": self.textons.dof,
             "feature_map": None,
         }
@@ -349,10 +346,11 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
         missing = [f for f in fields if f"texton.{f}" not in arrays]
         if missing:
             raise ValueError(f"missing arrays {['texton.' + f for f in missing]}")
-        observation = meta.get("observation", "paper")  # files before the models: paper
+        # files before the observation models: the paper's; no dof: Gaussian innovations
+        choice = observation_model(meta.get("observation", "paper"))
         tf = {f: jnp.asarray(arrays[f"texton.{f}"]) for f in fields}
-        # no res_*: the paper's residual; no dof: Gaussian innovations
-        textons = Texton(**tf, observation=observation, dof=meta.get("dof"))
+        core = {f: tf.pop(f) for f in TEXTON_FIELDS if f in tf}
+        textons = Texton(**core, observation=choice.from_arrays(tf), dof=meta.get("dof"))
         fm = None
         if meta.get("feature_map") is not None:
             fa = {k.split(".", 1)[1]: v for k, v in arrays.items() if k.startswith("feature_map.")}

@@ -16,7 +16,7 @@ def texture_summary(tex: Any) -> str:
     lines = [
         f"textons: {tex.n_textons}   segments: {len(np.asarray(tex.segments))}   "
         f"state dim: {tex.config.state_dim}   D: {tex.obs_dim}   threshold: {tex.threshold:.4g}",
-        f"observation model: {tex.textons.observation}   innovations: "
+        f"observation model: {tex.textons.observation.name}   innovations: "
         + ("Gaussian" if tex.textons.dof is None else f"Student-t, {tex.textons.dof:g} dof"),
         "synthesis innovations: "
         + (

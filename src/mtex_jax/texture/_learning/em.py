@@ -116,7 +116,7 @@ class Runner:
             config.q_floor,
             config.rho_max,
             config.init_prior_weight,
-            config.observation,
+            config.observation_model,
             config.sigma2_floor,
             dof=config.texton_dof,
         )

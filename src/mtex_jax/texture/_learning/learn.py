@@ -34,7 +34,7 @@ from .._noise.innovation_process import (
     segment_innovations,
 )
 from .._noise.residual_bank import PLAUSIBLE_TAIL, plausible_bank
-from .._observation import OBSERVATION_MODELS, FullObservation, observation_model
+from .._observation import OBSERVATION_MODELS, FullObservation
 from .._segmentation.segment import check_lengths
 from .._texton.select import choose_state_dim, n_params
 from .contacts import with_contacts
@@ -114,7 +114,7 @@ def check_data(
         raise ValueError(
             f"learn: state_dim = {config.state_dim} exceeds the observation dimension {dim}"
         )
-    fixed = observation_model(config.observation).fixed_state_dim(dim)
+    fixed = config.observation_model.fixed_state_dim(dim)
     if fixed is not None and config.state_dim not in (None, fixed):
         free = [n for n, m in OBSERVATION_MODELS.items() if m.fixed_state_dim(dim) is None]
         raise ValueError(
@@ -139,14 +139,14 @@ def resolve_state_dim(ys: list[np.ndarray], config: LearnConfig, verbose: bool) 
 
 def _resolve_k(ys: list[np.ndarray], config: LearnConfig, verbose: bool) -> LearnConfig:
     D = ys[0].shape[1]
-    fixed = observation_model(config.observation).fixed_state_dim(D)
+    fixed = config.observation_model.fixed_state_dim(D)
     if fixed is not None:
         return dataclasses.replace(config, state_dim=fixed)
     if config.state_dim is not None:
         return config
     if D == 1:
         return dataclasses.replace(config, state_dim=1)
-    k, table = choose_state_dim(ys, config.observation, ridge=config.ridge)
+    k, table = choose_state_dim(ys, config.observation_model, ridge=config.ridge)
     if verbose:
         bics = ", ".join(f"{int(r['k'])}: {r['bic']:.4g}" for r in table)
         print(f"[mtex learn] state dimension by BIC: k = {k}  ({bics})", flush=True)
@@ -328,7 +328,7 @@ def bic_parts(model: MotionTexture, n_frames: int) -> tuple[float, float, float]
         model.n_textons,
         model.obs_dim,
         cfg.state_dim,
-        cfg.observation,
+        cfg.observation_model,
         cfg.durations,
         np.asarray(model.segments),
     )
@@ -399,7 +399,9 @@ def _backward_bic(
         segs, score = run.e_step(tex, M, pi, log_d, capacity)
         cfg = best.config
         assert cfg.state_dim is not None
-        p = n_params(len(keep), best.obs_dim, cfg.state_dim, cfg.observation, cfg.durations, segs)
+        p = n_params(
+            len(keep), best.obs_dim, cfg.state_dim, cfg.observation_model, cfg.durations, segs
+        )
         bound = -2 * score + p * w
         b, cand = bound, None
         if bound < best_bic:  # refit only when it can pay

@@ -14,7 +14,6 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .._observation import observation_model
 from .._texton.fit import student_frame_weights, texton_from_stats_impl
 from .._texton.options import SolveOptions
 from .._texton.stats import (
@@ -146,7 +145,7 @@ def solve_stack(sub: Subspace, ds: DynamicsStats, opts: SolveOptions) -> Texton:
     """Every texton's closed form from its summed statistics, as the observation model of
     ``opts`` solves a stack (design §2.4–§2.6; tied models pool across textons)."""
     fit_one = functools.partial(texton_from_stats_impl, opts=opts)
-    return observation_model(opts.observation).solve(fit_one, Texton, sub, ds, opts)
+    return opts.observation.solve(fit_one, Texton, sub, ds, opts)
 
 
 # multi-process passes

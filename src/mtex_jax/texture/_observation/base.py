@@ -4,9 +4,14 @@ state subspace (design §2.2, §10.3).
 A texton ``i`` explains ``y_t`` by its state ``x_t = C_iᵀ(y_t − μ_i)`` and the residual
 ``r_t = (I − C_i C_iᵀ)(y_t − μ_i)``. The dynamics of the state are common to every model; the
 observation model says what the residual costs, what its M-step is, and how many free
-parameters that adds. Each model is one module of this folder implementing
-:class:`ObservationModel`, registered by name in ``__init__.py`` (``Texton.observation`` holds
-the name, so a model file stays plain arrays + JSON).
+parameters that adds. Each model is one module of this folder: an ``equinox.Module`` subclass
+of :class:`ObservationModel` that owns its parameters (a stack of textons holds its member
+with one leading axis on every parameter, as it holds its own fields). ``Texton.observation``
+holds the member; its registry name is what the CLI and a model file's JSON spell.
+
+A member built without its parameters (``ResidualObservation()``) is a *choice* of model: what
+a learn or a fit is given. Its M-step (:meth:`ObservationModel.fit`) returns the member with
+its parameters, which is what a fitted texton holds.
 
 Every hook keeps the segment scores' prefix-sum form (design §3.2): a model changes the
 per-frame terms ``dyn`` (frames ``t ≥ b + 2``) and ``obs``, never the recursion of the
@@ -18,6 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol, TypeVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,37 +32,49 @@ from jaxtyping import Array
 from .._texton.checks import check_dof
 
 if TYPE_CHECKING:
-    from .._texton.options import SolveOptions
     from .._texton.stats import DynamicsStats, Subspace
 
-__all__ = ["ObservationModel", "TextonView"]
+__all__ = ["MEMBER_FIELDS", "FitOptions", "ObservationModel", "ResidualArrays"]
 
 #: the texton class a member's M-step builds (the texton module imports the members, so they
 #: are handed its constructor rather than importing it)
 T = TypeVar("T")
 
 
-class TextonView(Protocol):
-    """What a member reads of a :class:`~mtex_jax.texture.Texton` (one, or a stack)."""
+class FitOptions(Protocol):
+    """What a member's M-step reads of the texton fit's options
+    (the texton fit's options are one)."""
 
     @property
-    def C(self) -> Array: ...
+    def ridge(self) -> float: ...
 
     @property
-    def sigma2(self) -> Array: ...
+    def q_floor(self) -> float: ...
 
     @property
-    def res_a(self) -> Array: ...
+    def rho_max(self) -> float | None: ...
 
     @property
-    def res_s2(self) -> Array: ...
+    def sigma2_floor(self) -> float: ...
+
+    @property
+    def dof(self) -> float | None: ...
 
 
-class ObservationModel:
+#: The arrays of a member in a model file: every texton's residual AR(2) ``res_a (*batch, 2)``
+#: and its innovation variance ``res_s2 (*batch,)``; a white residual is ``a = 0``,
+#: ``s_r² = σ²`` (design §10.3).
+ResidualArrays = dict[str, Any]
+
+#: The names of :data:`ResidualArrays` (``texton.res_a``, ``texton.res_s2`` in a file).
+MEMBER_FIELDS = ("res_a", "res_s2")
+
+
+class ObservationModel(eqx.Module):
     """One observation model of textons (the protocol; subclasses are the members).
 
     Class attributes:
-        name: the registry name, stored in ``Texton.observation`` and in model files.
+        name: the registry name, spelled by the CLI and in model files.
         student_t: whether the textons may have Student-t dynamics innovations
             (``Texton.dof``).
         kalman: whether :func:`~mtex_jax.texture.exact_log_likelihood` (the Kalman
@@ -66,6 +84,36 @@ class ObservationModel:
     name: ClassVar[str]
     student_t: ClassVar[bool] = False
     kalman: ClassVar[bool] = True
+
+    # -- parameters ---------------------------------------------------------------------------
+
+    @property
+    def fitted(self) -> bool:
+        """Whether the member holds its parameters (a member without parameters always
+        does)."""
+        return True
+
+    def check_shapes(self, batch: tuple[int, ...], D: int, k: int) -> None:
+        """Raise ``ValueError`` unless the member's parameters fit a texton (stack) of batch
+        shape ``batch`` with ``D``, ``k`` (called by ``Texton.__check_init__``)."""
+
+    def fit(
+        self, stats: DynamicsStats, k: int, D: int, sigma2: Array, opts: FitOptions
+    ) -> ObservationModel:
+        """The M-step of one texton: the member with its parameters from the texton's
+        dynamics statistics (traced). Default: no parameters beyond ``σ²``."""
+        return self
+
+    def to_arrays(self, sigma2: Array) -> ResidualArrays:
+        """The member's arrays in a model file (:data:`ResidualArrays`); ``sigma2`` the
+        textons' ``σ²``. Default: the white residual."""
+        s2 = jnp.asarray(sigma2)
+        return {"res_a": jnp.zeros((*s2.shape, 2), s2.dtype), "res_s2": s2}
+
+    def from_arrays(self, arrays: ResidualArrays) -> ObservationModel:
+        """This member with the parameters read from a model file's arrays. Default: none to
+        read."""
+        return self
 
     # -- shapes and counts ----------------------------------------------------------------
 
@@ -107,15 +155,7 @@ class ObservationModel:
         """Free parameters per texton of the residual model (0: none beyond ``σ²``)."""
         return 0
 
-    # -- M-step -----------------------------------------------------------------------------
-
-    def fit_residual(
-        self, stats: DynamicsStats, k: int, D: int, sigma2: Array, opts: SolveOptions
-    ) -> tuple[Array, Array]:
-        """``(res_a (2,), res_s2 ())`` of one texton from its dynamics statistics (traced).
-        Default: the paper's white residual, ``a = 0`` and ``s_r² = σ²``."""
-        dtype = stats.sum_zz.dtype
-        return jnp.zeros((2,), dtype), sigma2.astype(dtype)
+    # -- M-step of a stack ----------------------------------------------------------------
 
     def solve(
         self,
@@ -123,7 +163,7 @@ class ObservationModel:
         make: Callable[..., T],
         sub: Subspace,
         ds: DynamicsStats,
-        opts: SolveOptions,
+        opts: FitOptions,
     ) -> T:
         """The M-step's closed form for a stack of textons from their summed statistics
         (traced; design §2.4–§2.6). ``fit_one`` is the closed form of one texton
@@ -138,24 +178,25 @@ class ObservationModel:
     # -- frame terms (prefix-sum form) ------------------------------------------------------
 
     def window_dyn_terms(
-        self, Yw: Array, Z: Array, s2: Array, mcmc: Array, textons: TextonView, obs: Array, k: int
+        self, Yw: Array, Z: Array, s2: Array, mcmc: Array, obs: Array, k: int
     ) -> Array | None:
         """What the model adds to ``dyn`` on frames ``2 … W−1`` of a window of the blocked
-        kernel (``(N_t, W − 2)``), or ``None``. ``Yw``: the window's centred frames;
-        ``Z``: every texton's whitened states and ``y·μ`` row; ``s2``: the whitening
-        scales; ``mcmc``: ``‖μ − ȳ‖²`` per texton; ``obs``: the white residual terms of the
-        window."""
+        kernel (``(N_t, W − 2)``; the member is the stack's), or ``None``. ``Yw``: the
+        window's centred frames; ``Z``: every texton's whitened states and ``y·μ`` row;
+        ``s2``: the whitening scales; ``mcmc``: ``‖μ − ȳ‖²`` per texton; ``obs``: the white
+        residual terms of the window."""
         return None
 
-    def reference_dyn_terms(self, tex: TextonView, U: Array, obs: Array) -> Array | None:
-        """The same for one texton on a whole sequence (``(T − 2,)``, frames ``2 … T−1``), by
-        the direct formula: the per-texton reference kernel. ``U``: the frames minus the
-        texton's mean, ``y_t − μ``; ``obs``: the white residual terms."""
+    def residual_terms(self, C: Array, U: Array, sigma2: Array) -> Array | None:
+        """What the model adds to ``dyn`` on frames ``2 … L−1`` of one texton's frames
+        ``U = y − μ`` ``(L, D)`` (the member is one texton's; ``C`` its subspace, ``sigma2``
+        its ``σ²``), by the direct formula, or ``None``: the per-texton reference kernel
+        and the per-segment reference both sum it."""
         return None
 
-    def segment_dyn_term(self, tex: TextonView, Rres: Array) -> Array | None:
-        """The same summed over one segment from its residuals ``Rres (L, D)``: the direct
-        per-segment reference."""
+    def predict_residual(self, r1: Array, r2: Array) -> Array | None:
+        """The one-step prediction of the residual from the two before, ``(n, D)`` each (the
+        member holds one texton per row), or ``None`` for a white residual."""
         return None
 
     # -- choosing k ---------------------------------------------------------------------------
@@ -172,6 +213,3 @@ class ObservationModel:
             n: frames; ``N``: frames with two predecessors; ``k``: the state dimension.
         """
         raise ValueError(f"observation={self.name!r} has no state dimension to choose")
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}()"

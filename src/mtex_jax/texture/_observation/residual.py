@@ -5,7 +5,7 @@ segment as in the paper, then an isotropic AR(2) on the residual,
 
     r_t = a₁ r_{t−1} + a₂ r_{t−2} + e_t,    e_t ~ N(0, s_r² I_{D−k})
 
-in the residual subspace (``Texton.res_a = (a₁, a₂)``, ``Texton.res_s2 = s_r²``). The residual
+in the residual subspace: the member's parameters ``a = (a₁, a₂)`` and ``s2 = s_r²``. The residual
 of smooth motion is smooth, so its one-step prediction error is far smaller than its variance.
 In the frame terms the AR(2) replaces the white term on frames ``t ≥ b + 2``: the difference
 goes into ``dyn``, so a segment's score keeps its prefix-sum form.
@@ -18,13 +18,12 @@ from typing import TYPE_CHECKING, ClassVar
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
+from jaxtyping import Array, Float
 
 from .._texton.checks import LOG_2PI, UNROLL_MAX_K, project_radius, sym
-from .base import ObservationModel, TextonView
+from .base import FitOptions, ObservationModel, ResidualArrays
 
 if TYPE_CHECKING:
-    from .._texton.options import SolveOptions
     from .._texton.stats import DynamicsStats
 
 __all__ = ["ResidualObservation", "window_ar_terms"]
@@ -32,21 +31,64 @@ __all__ = ["ResidualObservation", "window_ar_terms"]
 
 class ResidualObservation(ObservationModel):
     """An isotropic AR(2) on the residual outside the state subspace: 3 more parameters per
-    texton (``a₁, a₂, s_r²``); no exact Kalman form."""
+    texton (``a₁, a₂, s_r²``); no exact Kalman form.
+
+    Attributes:
+        a: ``(*batch, 2)`` the residual's AR(2) coefficients ``(a₁, a₂)``; ``None`` in a
+            member that only chooses the model (what a learn or a fit is given).
+        s2: ``(*batch,)`` the residual's innovation variance ``s_r²`` (``None`` with ``a``).
+    """
 
     name: ClassVar[str] = "residual"
     kalman: ClassVar[bool] = False
 
+    a: Float[Array, "*batch 2"] | None = None
+    s2: Float[Array, "*batch"] | None = None
+
+    def __check_init__(self) -> None:
+        if (self.a is None) != (self.s2 is None):
+            raise ValueError("ResidualObservation needs both a and s2, or neither")
+
+    @property
+    def fitted(self) -> bool:
+        return self.a is not None
+
+    def check_shapes(self, batch: tuple[int, ...], D: int, k: int) -> None:
+        if self.a is None or self.s2 is None:
+            raise ValueError(
+                "observation ResidualObservation() holds no parameters: a texton needs the "
+                "fitted member, ResidualObservation(a=(*batch, 2), s2=(*batch,))"
+            )
+        a, s2 = getattr(self.a, "shape", None), getattr(self.s2, "shape", None)
+        if a is None or s2 is None:
+            return  # non-array leaves (jax.eval_shape sentinels): nothing to check
+        if tuple(a) != (*batch, 2) or tuple(s2) != batch:
+            raise ValueError(
+                f"ResidualObservation.a and .s2 must have shapes {(*batch, 2)} and {batch} "
+                f"(the texton's batch), got {tuple(a)} and {tuple(s2)}"
+            )
+
     def extra_params(self, D: int, k: int) -> int:
         return 3 if k < D else 0
 
-    def fit_residual(
-        self, stats: DynamicsStats, k: int, D: int, sigma2: Array, opts: SolveOptions
-    ) -> tuple[Array, Array]:
-        """``(res_a (2,), res_s2 ())`` of the residual AR(2) (see :func:`texton_from_stats`)."""
+    def to_arrays(self, sigma2: Array) -> ResidualArrays:
+        assert self.a is not None
+        return {"res_a": self.a, "res_s2": self.s2}
+
+    def from_arrays(self, arrays: ResidualArrays) -> ResidualObservation:
+        missing = [f"texton.{f}" for f in ("res_a", "res_s2") if f not in arrays]
+        if missing:
+            raise ValueError(f"a residual texture needs the arrays {missing}")
+        return ResidualObservation(a=arrays["res_a"], s2=arrays["res_s2"])
+
+    def fit(
+        self, stats: DynamicsStats, k: int, D: int, sigma2: Array, opts: FitOptions
+    ) -> ResidualObservation:
+        """The residual AR(2) of one texton from its dynamics statistics: least squares on
+        the residual's lag Gram (see :func:`~mtex_jax.texture.texton_from_stats`)."""
         dtype = stats.sum_zz.dtype
         if k >= D:
-            return jnp.zeros((2,), dtype), sigma2.astype(dtype)
+            return ResidualObservation(a=jnp.zeros((2,), dtype), s2=sigma2.astype(dtype))
         zz = stats.sum_zz
         tr = jnp.stack(
             [
@@ -69,42 +111,38 @@ class ResidualObservation(ObservationModel):
         e2 = G[0, 0] - 2.0 * a @ G[1:, 0] + a @ G[1:, 1:] @ a
         s2 = jnp.maximum(e2 / n, opts.sigma2_floor)
         ok = stats.n3 > 0
-        return jnp.where(ok, a, 0.0), jnp.where(ok, s2, sigma2).astype(dtype)
+        return ResidualObservation(
+            a=jnp.where(ok, a, 0.0), s2=jnp.where(ok, s2, sigma2).astype(dtype)
+        )
 
     def window_dyn_terms(
-        self, Yw: Array, Z: Array, s2: Array, mcmc: Array, textons: TextonView, obs: Array, k: int
+        self, Yw: Array, Z: Array, s2: Array, mcmc: Array, obs: Array, k: int
     ) -> Array | None:
         D = Yw.shape[1]
         if D <= k:
             return None
-        ra1, ra2 = textons.res_a[:, 0, None], textons.res_a[:, 1, None]
-        res_s2 = textons.res_s2[:, None]
+        assert self.a is not None and self.s2 is not None
+        ra1, ra2 = self.a[:, 0, None], self.a[:, 1, None]
+        res_s2 = self.s2[:, None]
         res_const = (D - k) * (LOG_2PI + jnp.log(res_s2))
         return window_ar_terms(Yw, Z, s2, ra1, ra2, res_s2, res_const, mcmc, k) - obs[:, 2:]
 
-    def reference_dyn_terms(self, tex: TextonView, U: Array, obs: Array) -> Array | None:
-        D, k = tex.C.shape
+    def residual_terms(self, C: Array, U: Array, white: Array) -> Array | None:
+        D, k = C.shape
         if U.shape[0] < 3 or D <= k:
             return None
+        assert self.a is not None and self.s2 is not None
         # e_t = r_t − a₁ r_{t−1} − a₂ r_{t−2} directly: ‖e‖² = ‖w‖² − ‖Cᵀw‖², with
         # w_t = u_t − a₁ u_{t−1} − a₂ u_{t−2}, u = y − μ
-        a1, a2 = tex.res_a[0], tex.res_a[1]
+        a1, a2 = self.a[0], self.a[1]
         Wv = U[2:] - a1 * U[1:-1] - a2 * U[:-2]
-        e2 = jnp.maximum(jnp.sum(Wv * Wv, axis=1) - jnp.sum((Wv @ tex.C) ** 2, axis=1), 0.0)
-        res = -0.5 * ((D - k) * (LOG_2PI + jnp.log(tex.res_s2)) + e2 / tex.res_s2)
-        return res - obs[2:]
+        e2 = jnp.maximum(jnp.sum(Wv * Wv, axis=1) - jnp.sum((Wv @ C) ** 2, axis=1), 0.0)
+        res = -0.5 * ((D - k) * (LOG_2PI + jnp.log(self.s2)) + e2 / self.s2)
+        return res - white
 
-    def segment_dyn_term(self, tex: TextonView, Rres: Array) -> Array | None:
-        D, k = tex.C.shape
-        if D <= k or Rres.shape[0] <= 2:
-            return None
-        # frames 3.. of the residual by its AR(2) instead of white noise
-        r2 = jnp.sum(Rres * Rres, axis=1)[2:]
-        white = -0.5 * ((D - k) * (LOG_2PI + jnp.log(tex.sigma2)) + r2 / tex.sigma2)
-        E = Rres[2:] - tex.res_a[0] * Rres[1:-1] - tex.res_a[1] * Rres[:-2]
-        e2 = jnp.sum(E * E, axis=1)
-        ar = -0.5 * ((D - k) * (LOG_2PI + jnp.log(tex.res_s2)) + e2 / tex.res_s2)
-        return jnp.sum(ar - white)
+    def predict_residual(self, r1: Array, r2: Array) -> Array | None:
+        assert self.a is not None
+        return self.a[:, :1] * r1 + self.a[:, 1:] * r2
 
     def residual_loglik(
         self, w: np.ndarray, V: np.ndarray, S: np.ndarray, n: int, N: int, k: int

@@ -25,7 +25,8 @@ algorithm and synthesis are those of full textons: only the M-step is new.
 
 The statistics of each texton arrive in its own coordinates ``z = Cᵢᵀ(y − μᵢ)`` (the
 full texton's rotation); they are rotated into ``y`` to pool them and the solution is
-rotated back, so a tied texton is an ordinary full :class:`~mtex_jax.texture.Texton`.
+rotated back, so a stack of tied textons is an ordinary stack of full
+:class:`~mtex_jax.texture.Texton` that holds this member.
 """
 
 from __future__ import annotations
@@ -40,11 +41,10 @@ import numpy as np
 from jaxtyping import Array
 
 from .._texton.checks import project_radius, psd_cholesky, sym
-from .base import T
+from .base import FitOptions, T
 from .full import FullObservation
 
 if TYPE_CHECKING:
-    from .._texton.options import SolveOptions
     from .._texton.stats import DynamicsStats, Subspace
 
 __all__ = ["TiedObservation", "tied_dynamics", "tied_initial_state"]
@@ -94,15 +94,13 @@ class TiedObservation(FullObservation):
         make: Callable[..., T],
         sub: Subspace,
         ds: DynamicsStats,
-        opts: SolveOptions,
+        opts: FitOptions,
     ) -> T:
         """Every parameter but the subspace's (``μ``, ``C``, ``σ²``) from the tied closed
         form, built by ``make`` (the texton class); no untied fit is computed."""
         del fit_one
         A1, A2, d, B = tied_dynamics(sub.C, ds, opts.ridge, opts.q_floor, opts.rho_max)
         m0, S0 = tied_initial_state(sub.C, ds, opts.q_floor)
-        k, D = sub.C.shape[-1], sub.C.shape[-2]
-        res_a, res_s2 = jax.vmap(lambda s, s2: self.fit_residual(s, k, D, s2, opts))(ds, sub.sigma2)
         dtype = ds.sum_zz.dtype
         return make(
             mu=sub.mu.astype(dtype),
@@ -114,9 +112,7 @@ class TiedObservation(FullObservation):
             sigma2=sub.sigma2.astype(dtype),
             m0=m0,
             S0=S0,
-            res_a=res_a,
-            res_s2=res_s2,
-            observation=opts.observation,
+            observation=self,
             dof=opts.dof,
         )
 

@@ -13,7 +13,6 @@ from jax import lax
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float
 
-from .._observation import observation_model
 from .._texton.checks import (
     LOG_2PI,
     UNROLL_MAX_K,
@@ -215,7 +214,7 @@ def frame_terms_impl(
     obs_const = cw["obs_const"][:, None]
     mcmc = cw["mcmc"][:, None]
     sigma2 = textons.sigma2[:, None]
-    model = observation_model(textons.observation)
+    model = textons.observation
     W = min(block + 2, T)
     step = max(W - 2, 1)
     n_blocks = -(-max(T - 2, 1) // step)
@@ -267,7 +266,7 @@ def frame_terms_impl(
             w = Z[:, :k, 2:] + FZ[:, :k, 1:-1] + FZ[:, k : 2 * k, :-2] - e[:, :, None]
             w2 = jnp.sum(w * w, axis=1)
         dyn_w = -0.5 * (dyn_const + w2)
-        extra = model.window_dyn_terms(Yw, Z, s2, mcmc, textons, obs, k)
+        extra = model.window_dyn_terms(Yw, Z, s2, mcmc, obs, k)
         if extra is not None:  # the observation model's own terms (design §10.3)
             dyn_w = dyn_w + extra
         return dyn_w, obs, init

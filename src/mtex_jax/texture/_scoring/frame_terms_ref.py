@@ -11,7 +11,6 @@ import jax.scipy.linalg as jsl
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
-from .._observation import observation_model
 from .._texton.checks import (
     LOG_2PI,
     check_obs,
@@ -58,7 +57,7 @@ def _terms_single(
         if n_res == 0:
             obs = jnp.zeros_like(obs)
         else:
-            extra = observation_model(tex.observation).reference_dyn_terms(tex, Yc - mc, obs)
+            extra = tex.observation.residual_terms(tex.C, Yc - mc, obs[2:]) if T >= 3 else None
             if extra is not None:  # the observation model's own terms (design §10.3)
                 dyn = dyn + jnp.concatenate([jnp.zeros((2,), dtype), extra])
     if with_init:

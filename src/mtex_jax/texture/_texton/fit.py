@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array, ArrayLike
 
-from .._observation import observation_model
+from .._observation import ObservationModel, PaperObservation, check_observation
 from .checks import (
     check_positive,
     check_state_dim,
@@ -44,7 +44,7 @@ def texton_from_stats(
     q_floor: float = 1e-6,
     rho_max: float | None = None,
     init_prior_weight: float = 4.0,
-    observation: str = "paper",
+    observation: ObservationModel = PaperObservation(),
     sigma2_floor: float = 1e-6,
 ) -> Texton:
     """Closed-form texton from summed statistics (design §2 step 3, corrected regression).
@@ -81,7 +81,7 @@ def texton_from_stats(
     i.e. the start frames pooled with ``κ`` pseudo-samples of the pair distribution; it tends
     to the empirical start distribution when there are many segments and is always PD.
 
-    Residual AR(2) (``observation="residual"``, ``k < D``): with the residual lag Gram
+    Residual AR(2) (``observation=ResidualObservation()``, ``k < D``): with the residual lag Gram
     ``G_ab = Σ r_{t−a}·r_{t−b} = sum_uu[a, b] − tr(sum_zz block (a, b))`` over the valid
     triples (``r = (I − C Cᵀ)(y − μ)``, so ``r_s·r_t = u_s·u_t − x_s·x_t``),
 
@@ -100,8 +100,8 @@ def texton_from_stats(
         q_floor: absolute floor added to ``Q`` and ``S0`` (units of ``x²`` = ``y²``), ``> 0``.
         rho_max: optional bound on the companion spectral radius, ``> 0``.
         init_prior_weight: shrinkage pseudo-count ``κ >= 0`` for ``(m0, S0)``.
-        observation: ``"paper"``, ``"residual"``, ``"full"`` or ``"tied"`` (see
-            :class:`Texton`; ``"full"`` and ``"tied"`` need ``k = D``).
+        observation: the observation model's member (see :class:`Texton`; the full and
+            tied models need ``k = D``); its M-step gives the texton's member.
         sigma2_floor: floor of the residual innovation variance ``s_r²``.
 
     Returns:
@@ -116,8 +116,9 @@ def texton_from_stats(
         raise ValueError(
             f"stats.sum_zz has shape {stats.sum_zz.shape}, expected {(3 * k, 3 * k)} for k={k}"
         )
+    observation = check_observation(observation)
     opts = SolveOptions.make(ridge, q_floor, rho_max, init_prior_weight, observation, sigma2_floor)
-    observation_model(observation).check_state_dim(int(subspace.C.shape[0]), k)
+    observation.check_state_dim(int(subspace.C.shape[0]), k)
     return _texton_from_stats_jit(subspace, stats, opts)
 
 
@@ -173,9 +174,7 @@ def texton_from_stats_impl(subspace: Subspace, stats: DynamicsStats, opts: Solve
     S0 = jnp.where(denom > 0, S0, jnp.zeros_like(S0)) + q_floor * eye_2k
 
     D = subspace.C.shape[0]
-    res_a, res_s2 = observation_model(opts.observation).fit_residual(
-        stats, k, D, subspace.sigma2, opts
-    )
+    observation = opts.observation.fit(stats, k, D, subspace.sigma2, opts)
     return Texton(
         mu=subspace.mu.astype(dtype),
         C=subspace.C.astype(dtype),
@@ -186,9 +185,7 @@ def texton_from_stats_impl(subspace: Subspace, stats: DynamicsStats, opts: Solve
         sigma2=subspace.sigma2.astype(dtype),
         m0=m0,
         S0=S0,
-        res_a=res_a,
-        res_s2=res_s2,
-        observation=opts.observation,
+        observation=observation,
         dof=opts.dof,
     )
 
@@ -211,7 +208,7 @@ def fit_texton(
     sigma2_floor: float = 1e-6,
     rho_max: float | None = None,
     init_prior_weight: float = 4.0,
-    observation: str = "paper",
+    observation: ObservationModel = PaperObservation(),
     dof: float | None = None,
 ) -> Texton:
     """Closed-form fit of one texton on one or several segments (design §2; MT App. B).
@@ -236,11 +233,11 @@ def fit_texton(
         sigma2_floor: absolute floor of ``σ²`` (units of ``y²``).
         rho_max: optional bound on the spectral radius of ``[[A1, A2], [I, 0]]``.
         init_prior_weight: shrinkage pseudo-count of the initial-state Gaussian.
-        observation: the observation model, ``"paper"``, ``"residual"``, ``"full"`` or
-            ``"tied"`` (the last two need ``state_dim = D``; one tied texton is a full one);
-            see :class:`Texton`.
+        observation: the observation model's member, e.g. ``ResidualObservation()`` (the
+            full and tied models need ``state_dim = D``; one tied texton is a full one); see
+            :class:`Texton`.
         dof: ``None`` (Gaussian innovations) or the degrees of freedom ``ν > 0`` of Student-t
-            innovations (the full-dimensional models, ``"full"`` and ``"tied"``). The t is
+            innovations (the full-dimensional models, full and tied). The t is
             fitted by 10 steps of iteratively reweighted least squares from the Gaussian fit:
             frame ``t``'s dynamics term gets the weight ``w_t = (ν + k) / (ν + q_t)``
             (``q_t`` its squared Mahalanobis innovation under the current fit) and the weighted
@@ -260,11 +257,12 @@ def fit_texton(
     Y, mask = check_fit_inputs(Y, mask)
     k = check_state_dim(state_dim, int(Y.shape[-1]), tuple(Y.shape))
     floor = check_positive("sigma2_floor", sigma2_floor)
-    dof = observation_model(observation).check_dof(dof)
+    observation = check_observation(observation)
+    dof = observation.check_dof(dof)
     opts = SolveOptions.make(
         ridge, q_floor, rho_max, init_prior_weight, observation, floor, dof=dof
     )
-    observation_model(observation).check_state_dim(int(Y.shape[-1]), k)
+    observation.check_state_dim(int(Y.shape[-1]), k)
     return _fit_texton_jit(Y, mask, k, floor, opts)
 
 

@@ -1,9 +1,9 @@
 """The options of the closed-form texton fit (design §2): a static bundle of floors, bounds
-and the observation member's name, shared by the single fit and the EM's M-step.
+and the observation model's member, shared by the single fit and the EM's M-step.
 
 :meth:`SolveOptions.make` checks each value's domain; whether the member takes Student-t
 innovations (``dof``) is the member's to say, and its callers ask it
-(``observation_model(name).check_dof``) before making the options."""
+(``ObservationModel.check_dof``) before making the options."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from typing import Any
 
 import equinox as eqx
 
+from .._observation import ObservationModel, PaperObservation, check_observation
 from .checks import check_dof, check_positive, check_positive_int
 
 __all__ = ["SolveOptions"]
@@ -24,7 +25,7 @@ class SolveOptions(eqx.Module):
         q_floor: absolute floor added to ``Q`` and ``S0``, ``> 0``.
         rho_max: optional bound on the companion spectral radius.
         init_prior_weight: shrinkage pseudo-count of ``(m0, S0)``, ``≥ 0``.
-        observation: the observation member's registry name.
+        observation: the observation model's member (without parameters: the choice).
         sigma2_floor: floor of the observation noise variances.
         dof: Student-t degrees of freedom of the innovations (``None``: Gaussian).
         irls_steps: reweighting steps of a Student-t fit.
@@ -34,7 +35,7 @@ class SolveOptions(eqx.Module):
     q_floor: float = eqx.field(static=True)
     rho_max: float | None = eqx.field(static=True)
     init_prior_weight: float = eqx.field(static=True)
-    observation: str = eqx.field(static=True, default="paper")
+    observation: ObservationModel = eqx.field(static=True, default=PaperObservation())
     sigma2_floor: float = eqx.field(static=True, default=1e-6)
     dof: float | None = eqx.field(static=True, default=None)
     irls_steps: int = eqx.field(static=True, default=10)
@@ -45,7 +46,7 @@ class SolveOptions(eqx.Module):
         q_floor: Any,
         rho_max: Any,
         init_prior_weight: Any,
-        observation: Any = "paper",
+        observation: Any = PaperObservation(),
         sigma2_floor: Any = 1e-6,
         dof: Any = None,
         irls_steps: Any = 10,
@@ -57,7 +58,7 @@ class SolveOptions(eqx.Module):
             init_prior_weight=check_positive(
                 "init_prior_weight", init_prior_weight, allow_zero=True
             ),
-            observation=observation,
+            observation=check_observation(observation),
             sigma2_floor=check_positive("sigma2_floor", sigma2_floor),
             dof=check_dof(dof),
             irls_steps=check_positive_int("irls_steps", irls_steps),

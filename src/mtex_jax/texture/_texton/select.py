@@ -23,7 +23,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .._observation import observation_model
+from .._observation import (
+    ObservationModel,
+    PaperObservation,
+    ResidualObservation,
+    check_observation,
+)
 
 __all__ = ["choose_state_dim", "n_params"]
 
@@ -34,7 +39,7 @@ def n_params(
     n_t: int,
     D: int,
     k: int,
-    observation: str = "paper",
+    observation: ObservationModel = PaperObservation(),
     durations: str = "flat",
     segments: np.ndarray | None = None,
 ) -> float:
@@ -56,7 +61,7 @@ def n_params(
         lab = seg[:, 3].astype(np.int64)
         starts = np.bincount(lab, minlength=n_t)[:n_t].astype(np.float64)
         frames = np.bincount(lab, weights=np.maximum(seg[:, 2] - 2, 0), minlength=n_t)[:n_t]
-    p = observation_model(observation).n_params(n_t, D, k, frames, starts)
+    p = check_observation(observation).n_params(n_t, D, k, frames, starts)
     if durations == "lognormal":
         p += 2 * n_t
     return p + n_t * (n_t - 1) + n_t - 1
@@ -69,7 +74,7 @@ def _candidates(D: int) -> list[int]:
 
 def choose_state_dim(
     ys: Sequence[np.ndarray],
-    observation: str = "residual",
+    observation: ObservationModel = ResidualObservation(),
     candidates: Sequence[int] | None = None,
     ridge: float = 1e-6,
 ) -> tuple[int, list[dict[str, float]]]:
@@ -77,22 +82,22 @@ def choose_state_dim(
 
     Args:
         ys: observation sequences ``(T_s, D)`` (each at least 3 frames).
-        observation: ``"paper"`` or ``"residual"`` (``"full"`` and ``"tied"`` have
-            ``k = D``).
+        observation: ``PaperObservation()`` or ``ResidualObservation()`` (the full and
+            tied models have ``k = D``).
         candidates: the ``k`` to try (default: 2, 4, 6, 8, 10, 12, 16, 20, 24, 32, … below
-            ``D``, and ``D`` itself: no residual, the ``"full"`` texton).
+            ``D``, and ``D`` itself: no residual, the full texton).
         ridge: relative ridge of the AR(2) regression, as in :func:`fit_texton`.
 
     Returns:
         ``(k, table)``: one dict per candidate (``k``, ``loglik``, ``params``, ``bic``).
     """
-    model = observation_model(observation)
+    model = check_observation(observation)
     ys = [np.asarray(y, dtype=np.float64) for y in ys]
     if not ys or any(y.ndim != 2 or y.shape[0] < 3 for y in ys):
         raise ValueError("ys must be non-empty (T, D) arrays with T >= 3")
     D = ys[0].shape[1]
     if model.fixed_state_dim(D) is not None:
-        raise ValueError(f"observation={observation!r} has a fixed state dimension (k = D)")
+        raise ValueError(f"observation={model.name!r} has a fixed state dimension (k = D)")
     cands = _candidates(D) if candidates is None else [int(k) for k in candidates]
     if any(k < 1 or k > D for k in cands):
         raise ValueError(f"candidate state dimensions must lie in [1, {D}], got {cands}")

@@ -10,24 +10,24 @@ A texton ``i`` is the linear dynamic system
 
 with ``C`` a ``(D, k)`` matrix of orthonormal columns and ``Q = B Bᵀ`` (``B`` lower triangular).
 
-The *observation model* (static :attr:`Texton.observation`) says how the part of ``y`` outside
-the state subspace, the residual ``r_t = (I − C Cᵀ)(y_t − μ)``, is scored:
+The *observation model* (:attr:`Texton.observation`: a member, which owns its
+parameters) says how the part of
+``y`` outside the state subspace, the residual ``r_t = (I − C Cᵀ)(y_t − μ)``, is scored:
 
-* ``"paper"`` (MT-11): white noise, ``r_t ~ N(0, σ² I_{D−k})`` on every frame;
-* ``"residual"``: the first two frames of a segment as in the paper, then an isotropic AR(2)
-  on the residual, ``r_t = a₁ r_{t−1} + a₂ r_{t−2} + e_t``, ``e_t ~ N(0, s_r² I_{D−k})`` in the
-  residual subspace (``res_a = (a₁, a₂)``, ``res_s2 = s_r²``). The residual of smooth motion
-  is smooth, so its one-step prediction error is far smaller than its variance;
-* ``"full"``: ``k = D`` (no residual): the texton is a full-covariance AR(2) on ``y`` and the
-  texture an autoregressive hidden semi-Markov model;
-* ``"tied"`` (the default of :class:`~mtex_jax.texture.LearnConfig`): full textons whose
-  dynamics are shared by the vocabulary, each with its own offset and shrunk covariance
-  (design §10.10). One texton is scored as a ``"full"`` one; only the vocabulary's M-step
-  differs.
+* :class:`PaperObservation` (MT-11): white noise, ``r_t ~ N(0, σ² I_{D−k})`` on every frame;
+* :class:`ResidualObservation`: the first two frames of a segment as in the paper, then an
+  isotropic AR(2) on the residual, ``r_t = a₁ r_{t−1} + a₂ r_{t−2} + e_t``,
+  ``e_t ~ N(0, s_r² I_{D−k})`` in the residual subspace (the member's ``a = (a₁, a₂)`` and
+  ``s2 = s_r²``). The residual of smooth motion is smooth, so its one-step prediction error is
+  far smaller than its variance;
+* :class:`FullObservation`: ``k = D`` (no residual): the texton is a full-covariance AR(2) on
+  ``y`` and the texture an autoregressive hidden semi-Markov model;
+* :class:`TiedObservation` (the default of :class:`~mtex_jax.texture.LearnConfig`): full
+  textons whose dynamics are shared by the vocabulary, each with its own offset and shrunk
+  covariance (design §10.10). One texton is scored as a full one; only the vocabulary's
+  M-step differs.
 
-For ``"paper"``, ``"full"`` and ``"tied"`` ``res_a = 0`` and ``res_s2 = σ²``.
-
-A ``"full"`` texton may have Student-t dynamics innovations (static :attr:`Texton.dof` ``= ν``):
+A full (or tied) texton may have Student-t dynamics innovations (static :attr:`Texton.dof` ``= ν``):
 ``x_{t+1} = A1 x_t + A2 x_{t−1} + d + ε_t``, ``ε_t ~ t_ν(0, B Bᵀ)``. Real capture has rare
 large innovations (glitches, sudden contacts); a Gaussian fitted to them inflates ``Q`` for
 every frame, a t down-weights them (its M-step is iteratively reweighted least squares).
@@ -63,12 +63,16 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, Float
 
-from .._observation import observation_model
-from .checks import companion_blocks
+from .._observation import ObservationModel, PaperObservation, check_observation
+from .checks import check_dof, companion_blocks
 
 # --------------------------------------------------------------------------------------------
 # Texton container
 # --------------------------------------------------------------------------------------------
+
+
+def _dof(dof: Any) -> float | None:
+    return check_dof(dof, where="Texton.dof")
 
 
 class Texton(eqx.Module):
@@ -90,14 +94,12 @@ class Texton(eqx.Module):
         sigma2: ``(*batch,)`` observation noise variance ``σ²`` (per dimension).
         m0: ``(*batch, 2k)`` mean of the first two states ``[x_1; x_2]``.
         S0: ``(*batch, 2k, 2k)`` covariance of ``[x_1; x_2]``.
-        res_a: ``(*batch, 2)`` AR(2) coefficients ``(a₁, a₂)`` of the residual
-            (``"residual"`` observation model; 0 otherwise).
-        res_s2: ``(*batch,)`` residual innovation variance ``s_r²`` (``σ²`` otherwise).
-        observation: ``"paper"``, ``"residual"``, ``"full"`` or ``"tied"`` (static; see the
-            module doc).
-        dof: degrees of freedom ``ν`` of Student-t dynamics innovations (static, ``"full"``
-            textons only): ``x_t = A1 x_{t−1} + A2 x_{t−2} + d + ε_t`` with
-            ``ε_t ~ t_ν(0, Q)``, a scale mixture ``ε_t = B v_t / √g_t``, ``v_t ~ N(0, I)``,
+        observation: the observation model, a member that owns its parameters (each with
+            the texton's batch shape in front; see the module doc). Default: the paper's.
+        dof: degrees of freedom ``ν`` of Student-t dynamics innovations (static; only for
+            an observation model that takes them, ``student_t``):
+            ``x_t = A1 x_{t−1} + A2 x_{t−2} + d + ε_t`` with ``ε_t ~ t_ν(0, Q)``, a scale
+            mixture ``ε_t = B v_t / √g_t``, ``v_t ~ N(0, I)``,
             ``g_t ~ Gamma(ν/2, rate ν/2)``. ``None``: Gaussian innovations ``N(0, Q)``.
     """
 
@@ -110,41 +112,12 @@ class Texton(eqx.Module):
     sigma2: Float[Array, "*batch"]
     m0: Float[Array, "*batch k2"]
     S0: Float[Array, "*batch k2 k2"]
-    res_a: Float[Array, "*batch 2"]
-    res_s2: Float[Array, "*batch"]
-    observation: str = eqx.field(static=True)
-    dof: float | None = eqx.field(static=True)
-
-    def __init__(
-        self,
-        mu: Any,
-        C: Any,
-        A1: Any,
-        A2: Any,
-        d: Any,
-        B: Any,
-        sigma2: Any,
-        m0: Any,
-        S0: Any,
-        res_a: Any = None,
-        res_s2: Any = None,
-        observation: str = "paper",
-        dof: float | None = None,
-    ) -> None:
-        """The fields as given; ``res_a`` and ``res_s2`` default to the paper's white residual
-        (``a = 0``, ``s_r² = σ²``), so textons made before the observation models (and the
-        paper's) need not give them."""
-        self.mu, self.C, self.A1, self.A2, self.d, self.B = mu, C, A1, A2, d, B
-        self.sigma2, self.m0, self.S0 = sigma2, m0, S0
-        if res_a is None:
-            s2 = sigma2 if hasattr(sigma2, "shape") else jnp.asarray(sigma2)
-            res_a = jnp.zeros((*s2.shape, 2), getattr(s2, "dtype", None))
-        self.res_a = res_a
-        self.res_s2 = sigma2 if res_s2 is None else res_s2
-        self.observation = observation
-        self.dof = observation_model(observation).check_dof(dof, where="Texton.dof")
+    observation: ObservationModel = PaperObservation()
+    dof: float | None = eqx.field(static=True, default=None, converter=_dof)
 
     def __check_init__(self) -> None:
+        check_observation(self.observation, "Texton.observation")
+        self.observation.check_dof(self.dof, where="Texton.dof")
         shapes = {name: getattr(getattr(self, name), "shape", None) for name in TEXTON_FIELDS}
         if any(s is None for s in shapes.values()):
             return  # non-array leaves (e.g. jax.eval_shape sentinels): nothing to check
@@ -168,8 +141,6 @@ class Texton(eqx.Module):
             "sigma2": batch,
             "m0": (*batch, 2 * k),
             "S0": (*batch, 2 * k, 2 * k),
-            "res_a": (*batch, 2),
-            "res_s2": batch,
         }
         for name, exp in expected.items():
             got = tuple(shapes[name])  # type: ignore[arg-type]
@@ -181,7 +152,8 @@ class Texton(eqx.Module):
         if k < 1 or k > D:
             raise ValueError(f"Texton state dimension k={k} must satisfy 1 <= k <= D={D}")
         try:
-            observation_model(self.observation).check_state_dim(D, k)
+            self.observation.check_state_dim(D, k)
+            self.observation.check_shapes(batch, D, k)
         except ValueError as e:
             raise ValueError(f"Texton.{e}") from None
 
@@ -232,7 +204,8 @@ class Texton(eqx.Module):
         return jax.tree.map(lambda x: x[index], self)
 
 
-TEXTON_FIELDS = ("mu", "C", "A1", "A2", "d", "B", "sigma2", "m0", "S0", "res_a", "res_s2")
+#: The dynamics core's array fields (the observation member holds its own).
+TEXTON_FIELDS = ("mu", "C", "A1", "A2", "d", "B", "sigma2", "m0", "S0")
 
 
 def check_index(index: Any, n: int, what: str) -> None:
@@ -283,10 +256,10 @@ def stack_textons(textons: Sequence[Texton]) -> Texton:
             raise ValueError(
                 f"stack_textons: element {j} has dof {t.dof}, element 0 has {first.dof}"
             )
-        if t.observation != first.observation:
+        if type(t.observation) is not type(first.observation):
             raise ValueError(
-                f"stack_textons: element {j} has observation model {t.observation!r}, "
-                f"element 0 has {first.observation!r}"
+                f"stack_textons: element {j} has observation model {t.observation.name!r}, "
+                f"element 0 has {first.observation.name!r}"
             )
         if (t.obs_dim, t.state_dim) != (first.obs_dim, first.state_dim):
             raise ValueError(

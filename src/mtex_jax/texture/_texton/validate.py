@@ -10,6 +10,7 @@ import numpy as np
 from jax.core import Tracer
 
 from ...core import check_count, check_real
+from .._observation import MEMBER_FIELDS
 from .texton import TEXTON_FIELDS, Texton, spectral_radius
 
 __all__ = [
@@ -22,7 +23,7 @@ __all__ = [
 #: The members a motion-texture file may hold besides the required ones (fnmatch patterns);
 #: any other member is rejected before it is decompressed.
 TEXTURE_MEMBERS = (
-    *(f"texton.{f}" for f in TEXTON_FIELDS),
+    *(f"texton.{f}" for f in (*TEXTON_FIELDS, *MEMBER_FIELDS)),
     "feature_map.offset",
     "feature_map.scale",
     "log_durations",
