@@ -186,6 +186,57 @@ class Motion(eqx.Module):
             )
         return Motion(skeleton, self.fps, self.root_positions, self.rotations, self.local_positions)
 
+    # ------------------------------------------------------------------ left and right
+    def mirror(self, axis: int | None = None) -> Motion:
+        """The motion reflected left to right, on the same skeleton: what the other side of
+        the body would have danced (new motion for a model, and an animator's mirror).
+
+        Every joint takes the reflected rotation of its left-right partner
+        (:meth:`Skeleton.mirror_pairs`); the root's path is reflected through the vertical
+        plane normal to the lateral ``axis`` (default :meth:`Skeleton.lateral_axis`). A
+        reflection ``M`` maps a rotation ``R`` to ``M R M``: the quaternion keeps ``w`` and its
+        component along ``axis`` and negates the other two. On a skeleton that is symmetric
+        under ``M`` (each partner's offset the reflection of the joint's, midline offsets in
+        the plane) the joint positions are exactly the reflected ones; mirroring twice gives
+        the motion back.
+
+        Args:
+            axis: the world axis to reflect (0, 1 or 2, not the up axis); ``None`` infers it.
+
+        Raises:
+            ValueError: for an axis that is the up axis or not 0, 1, 2, or (``axis=None``) a
+                skeleton without joints named by side.
+        """
+        sk = self.skeleton
+        if axis is None:
+            axis = sk.lateral_axis()
+        elif (
+            isinstance(axis, bool)
+            or not isinstance(axis, int | np.integer)
+            or axis
+            not in (
+                0,
+                1,
+                2,
+            )
+        ):
+            raise ValueError(f"mirror: axis must be 0, 1 or 2, got {axis!r}")
+        elif axis == sk.up_axis:
+            raise ValueError(
+                f"mirror: axis {axis} is the up axis; a mirror reflects a horizontal axis"
+            )
+        m = self.numpy()
+        partner = np.asarray(sk.mirror_pairs())
+        flip = np.ones(3)
+        flip[axis] = -1.0  # positions: M p
+        qsign = np.concatenate([[1.0], -flip])  # quaternions: (w, −M v)
+        q = np.asarray(m.rotations)[:, partner] * qsign
+        root = np.asarray(m.root_positions) * flip
+        lp = None
+        if m.local_positions is not None:
+            lp = np.asarray(m.local_positions)[:, partner] * flip
+        return Motion(sk, self.fps, root, q, lp)
+
     # ------------------------------------------------------------------ resampling
     def resample(self, fps: float, *, max_frames: int = MAX_FRAMES) -> Motion:
         """Resample to another frame rate over the same time span.

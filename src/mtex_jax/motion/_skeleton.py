@@ -145,6 +145,51 @@ class Skeleton:
             and self.channels == other.channels
         )
 
+    # ------------------------------------------------------------------ left and right
+    def mirror_pairs(self) -> tuple[int, ...]:
+        """The left-right partner of every joint, found by name (itself for a joint on the
+        midline).
+
+        The sides are spelled as in the common skeletons: ``left``/``right`` anywhere in the
+        name, in any case (``leftEye``, ``left_hip``, ``LeftArm``); a one-letter prefix
+        ``l``/``r`` or ``L``/``R`` (``lThigh``, ``L_Hip``, ``lfemur``); a suffix ``_l``/``_r``,
+        ``.l``/``.r`` (either case). A swapped spelling counts only where it names a joint.
+
+        Raises:
+            ValueError: if a joint's partner would have another partner.
+        """
+        names = self.names
+        index = {n: i for i, n in enumerate(names)}
+        pairs = [
+            next((index[c] for c in _other_sides(n) if c in index), i) for i, n in enumerate(names)
+        ]
+        for i, j in enumerate(pairs):
+            if pairs[j] != i:
+                raise ValueError(
+                    f"mirror: the joints {names[i]!r} and {names[j]!r} are not each other's "
+                    "left-right partner"
+                )
+        return tuple(pairs)
+
+    def lateral_axis(self) -> int:
+        """The world axis from left to right at rest: of the two horizontal axes, the one along
+        which the partners of :meth:`mirror_pairs` lie apart the most.
+
+        Raises:
+            ValueError: if the skeleton has no left-right pair (no side to mirror).
+        """
+        pairs = np.asarray(self.mirror_pairs())
+        sided = np.nonzero(pairs != np.arange(self.n_joints))[0]
+        if sided.size == 0:
+            raise ValueError(
+                "mirror: no joint has a left-right partner by name (e.g. lThigh/rThigh, "
+                "left_hip/right_hip); give the lateral axis"
+            )
+        off = self.offsets_array
+        spread = np.abs(off[sided] - off[pairs[sided]]).sum(axis=0)
+        _, h0, h1 = ground_axes(self.up_axis)
+        return h0 if spread[h0] >= spread[h1] else h1
+
     # ------------------------------------------------------------------ serialisation
     def to_json_dict(self) -> dict[str, Any]:
         return {
@@ -181,6 +226,22 @@ def ground_axes(up_axis: int) -> tuple[int, int, int]:
     that ``(h0, h1, up)`` is a right-handed frame.
     """
     return up_axis, (up_axis + 1) % 3, (up_axis + 2) % 3
+
+
+_SIDES = {"left": "right", "right": "left", "Left": "Right", "Right": "Left"}
+_SIDES.update({k.upper(): v.upper() for k, v in list(_SIDES.items())[:2]})
+
+
+def _other_sides(name: str) -> list[str]:
+    """``name`` with its side swapped, in each spelling that might be meant (see
+    :meth:`Skeleton.mirror_pairs`); the first that names a joint is the partner."""
+    out = [name.replace(a, b, 1) for a, b in _SIDES.items() if a in name]
+    swap = {"l": "r", "r": "l", "L": "R", "R": "L"}
+    if len(name) > 1 and name[0] in swap:  # lThigh, L_Hip, lfemur (CMU's ASF names)
+        out.append(swap[name[0]] + name[1:])
+    if len(name) > 2 and name[-2] in "_." and name[-1] in swap:  # hand_l, foot.R
+        out.append(name[:-1] + swap[name[-1]])
+    return out
 
 
 def _vec3(o: Any) -> tuple[float, float, float]:

@@ -313,8 +313,9 @@ def frame_terms(
                     ‖r_t‖² = max(‖y_t − μ‖² − ‖x_t‖², 0)
 
     (``r_t`` is the residual outside the texton's subspace; ``obs = 0`` when ``k = D``.)
-    For a ``"residual"`` texton (:class:`Texton`) the residual of frames ``t >= b + 2`` is
-    scored by its AR(2) instead of white noise, and the difference goes into ``dyn``:
+    For a texton with the residual AR(2) (``ResidualObservation``) the residual of frames
+    ``t >= b + 2`` is scored by its AR(2) instead of white noise, and the difference goes into
+    ``dyn``:
 
     .. code-block:: text
 
