@@ -96,7 +96,11 @@ def test_windows_are_per_clip_with_successors(model, train):
         np.testing.assert_allclose(np.asarray(model.database.successors[rows]), psi[fi], atol=1e-12)
         # the newest pose of window j is frame frame_index[j]  (ψ row frame − 1)
         # (model coordinates weigh the newest pose vector by √(1 + recent_weight))
-        newest = probe[:k].reshape(k, WINDOW, -1)[:, -1] * gamma / np.sqrt(1 + model.database.recent_weight)
+        newest = (
+            probe[:k].reshape(k, WINDOW, -1)[:, -1]
+            * gamma
+            / np.sqrt(1 + model.database.recent_weight)
+        )
         np.testing.assert_allclose(newest, psi[fi - 1], atol=1e-10)
         assert np.all(np.asarray(model.database.clip_index[rows]) == c)
         start += k
@@ -232,7 +236,9 @@ def test_exact_sampler_matches_its_distribution():
     tol = 5 * np.sqrt(p[big] * (1 - p[big]) / n)  # 5 binomial standard deviations
     assert np.all(np.abs(freq[big] - p[big]) < tol), (freq[big], p[big])
     assert freq[~big].sum() < p[~big].sum() + 0.01
-    np.testing.assert_array_equal(np.asarray(succ), np.asarray(m.database.successors)[np.asarray(idx)])
+    np.testing.assert_array_equal(
+        np.asarray(succ), np.asarray(m.database.successors)[np.asarray(idx)]
+    )
 
 
 def test_importance_resampled_tree_tends_to_the_exact_sampler():
@@ -270,7 +276,9 @@ def test_low_beta_tree_finds_own_leaf_and_weighted_finds_self(model):
     )
     iw, _ = model.sample(jax.random.PRNGKey(6), probes, 1e-9, leaf="weighted")
     np.testing.assert_array_equal(np.asarray(iw), sel)
-    np.testing.assert_array_equal(np.asarray(su), np.asarray(model.database.successors)[np.asarray(iu)])
+    np.testing.assert_array_equal(
+        np.asarray(su), np.asarray(model.database.successors)[np.asarray(iu)]
+    )
 
 
 def test_single_probe_and_dtype(model, probes):

@@ -43,8 +43,8 @@ def test_foot_lock_makes_planted_feet_move_as_in_the_example(db):
         new = ex_new + 0.3 * rng.standard_normal(dim)  # an offset dragging the feet
         for c in ([1.0, 0.0], [0.0, 1.0], [1.0, 1.0]):
             got, _ = lock_root(
-                fm, model.database.feet, chans, jnp.asarray(last), jnp.asarray(new), jnp.asarray(ex_last),
-                jnp.asarray(ex_new), jnp.asarray(c), jnp.zeros(3), 1.0, 0.0,
+                fm, model.database.feet, chans, jnp.asarray(last), jnp.asarray(new),
+                jnp.asarray(ex_last), jnp.asarray(ex_new), jnp.asarray(c), jnp.zeros(3), 1.0, 0.0,
             )  # fmt: skip
             got = np.asarray(got)
             keep = np.ones(dim, bool)
@@ -85,7 +85,9 @@ def test_recent_weight_adds_the_newest_pose_distance(db):
     m0 = mj.implicit.learn(clips[1:], WINDOW, recent_weight=0.0, feature_map=model.feature_map)
     w = model.database.recent_weight
     assert w > 0 and m0.database.recent_weight == 0.0
-    np.testing.assert_allclose(np.asarray(m0.database.gamma), np.asarray(model.database.gamma), rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(m0.database.gamma), np.asarray(model.database.gamma), rtol=1e-12
+    )
     probe0, probe = m0.windows_of(clips[0])[3], model.windows_of(clips[0])[3]
     idx = np.arange(0, model.database.n_examples, 7)
     d0 = np.asarray(m0.distance2(np.broadcast_to(probe0, (len(idx), probe0.size)), idx))

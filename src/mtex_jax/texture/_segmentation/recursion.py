@@ -124,8 +124,8 @@ _GATHER_MAX_BYTES = 2 * 2**20
 _UNROLL_MAX_LENGTHS = 256
 
 
-class MaxPlus:
-    """The max-plus semiring of the Viterbi (design §4), for ``N_t`` textons in ``dtype``."""
+class _Algebra:
+    """What both semirings keep: the lengths, the textons' count and dtype, ``log M``."""
 
     def __init__(
         self,
@@ -140,11 +140,21 @@ class MaxPlus:
         self.log_M = log_M
         self.neg = jnp.asarray(-jnp.inf, dtype)
         self.Wn = tmax - tmin + 1  # candidate starts per end
+        self.prepare(log_durations)
+
+    def prepare(self, log_durations: Array | None) -> None:
+        """The semiring's own constants (traced), from the durations."""
+
+
+class MaxPlus(_Algebra):
+    """The max-plus semiring of the Viterbi (design §4), for ``N_t`` textons in ``dtype``."""
+
+    def prepare(self, log_durations: Array | None) -> None:
         self.dur_rev: Array | None = None
         if log_durations is not None:
             # row p + w of a window is the start of a segment of length tmax − w for end s + p
-            self.dur_rev = jnp.asarray(log_durations, dtype).T[::-1]  # (Wn, N): w -> tmax − w
-            self.gather = jnp.arange(tmin)[:, None] + jnp.arange(self.Wn)[None, :]  # (P, Wn)
+            self.dur_rev = jnp.asarray(log_durations, self.dtype).T[::-1]  # (Wn, N)
+            self.gather = jnp.arange(self.tmin)[:, None] + jnp.arange(self.Wn)[None, :]
 
     def window(self, win: Array) -> Array:
         P, Wn, neg = self.tmin, self.Wn, self.neg
@@ -180,7 +190,7 @@ def safe_logsumexp(x: Array, axis: int) -> Array:
     return jnp.where(pos, jnp.log(jnp.where(pos, s, 1.0)) + jnp.squeeze(m, axis), -jnp.inf)
 
 
-class LogSumExp:
+class LogSumExp(_Algebra):
     """The log semiring of the forward algorithm (design §10.1), for ``N_t`` textons in
     ``dtype``: the window's log-sum-exp gathered in chunks of starts with a running maximum
     (bounded memory even for ``tmax = None``; exact, and with finite gradients where a window
@@ -188,29 +198,17 @@ class LogSumExp:
     ``exp(v − max) · exp(log M − column max)``, with the ``(P, N, N)`` log-sum-exp as the
     exact fallback if a column's terms all underflow."""
 
-    def __init__(
-        self,
-        log_M: Array,
-        log_durations: Array | None,
-        tmin: int,
-        tmax: int,
-        n_t: int,
-        dtype: jnp.dtype,
-    ) -> None:
-        self.tmin, self.tmax, self.n_t, self.dtype = tmin, tmax, n_t, dtype
-        self.log_M = log_M
-        P = tmin
-        Wn = tmax - tmin + 1
+    def prepare(self, log_durations: Array | None) -> None:
+        P, Wn, n_t, dtype, log_M = self.tmin, self.Wn, self.n_t, self.dtype, self.log_M
         # window offset w holds start b = e − tmax + 1 + w, i.e. length L = tmax − w
         if log_durations is None:
             dur_w = jnp.zeros((Wn, n_t), dtype)
         else:
             dur_w = jnp.asarray(log_durations, dtype)[:, ::-1].T
         Wc = int(min(Wn, max(1, _GATHER_BUDGET // max(1, P * n_t))))
-        self.Wn, self.Wc, self.nc = Wn, Wc, -(-Wn // Wc)
+        self.Wc, self.nc = Wc, -(-Wn // Wc)
         pad = jnp.full((self.nc * Wc - Wn, n_t), -jnp.inf, dtype)
         self.dur_w = jnp.concatenate([dur_w, pad], axis=0)
-        self.neg = jnp.asarray(-jnp.inf, dtype)
         self.rows = jnp.arange(P)[:, None] + jnp.arange(Wc)[None, :]  # (P, Wc)
         col = jnp.max(log_M, axis=0)  # per column shift, so tiny probabilities do not underflow
         self.col = jnp.where(jnp.isfinite(col), col, 0.0)

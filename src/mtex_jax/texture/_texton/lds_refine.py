@@ -32,14 +32,11 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .checks import (
-    as_float_array,
-    check_finite,
-    check_mask,
     check_positive,
     float_dtype,
 )
-from .likelihood import check_kalman, kalman_log_likelihood
-from .texton import Texton, check_texton
+from .likelihood import check_segments_inputs, kalman_log_likelihood
+from .texton import Texton
 
 __all__ = ["RefineReport", "refine_texton"]
 
@@ -135,12 +132,7 @@ def refine_texton(
             innovations, or an observation model without that form such as the residual
             AR(2)): the refinement would maximise another model's likelihood.
     """
-    texton = check_kalman(check_texton("texton", texton, stacked=False))
-    Y = as_float_array("Y", Y, (2, 3), "(T, D) or (S, T, D)")
-    if Y.shape[-1] != texton.obs_dim:
-        raise ValueError(f"Y has shape {tuple(Y.shape)}, the texton expects D={texton.obs_dim}")
-    check_finite("Y", Y)
-    mask = check_mask(mask, tuple(Y.shape[:-1]))
+    texton, Y, mask = check_segments_inputs(texton, Y, mask)
     if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
     rtol = check_positive("rtol", rtol)

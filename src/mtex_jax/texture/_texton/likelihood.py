@@ -180,13 +180,20 @@ def exact_log_likelihood_segments(
     Returns:
         Scalar log-likelihood.
     """
+    texton, Y, mask = check_segments_inputs(texton, Y, mask)
+    return _segments_ll_jit(texton, Y, mask)
+
+
+def check_segments_inputs(texton: Any, Y: Any, mask: Any) -> tuple[Texton, Array, Array]:
+    """The inputs of the Kalman likelihood of segments (and of its refinement) checked: a
+    single texton whose likelihood it is (:func:`check_kalman`), finite ``(T, D)`` or
+    ``(S, T, D)`` frames of its ``D`` and segment ids of their leading shape."""
     texton = check_kalman(check_texton("texton", texton, stacked=False))
     Y = as_float_array("Y", Y, (2, 3), "(T, D) or (S, T, D)")
     if Y.shape[-1] != texton.obs_dim:
         raise ValueError(f"Y has shape {tuple(Y.shape)}, the texton expects D={texton.obs_dim}")
     check_finite("Y", Y)
-    mask = check_mask(mask, tuple(Y.shape[:-1]))
-    return _segments_ll_jit(texton, Y, mask)
+    return texton, Y, check_mask(mask, tuple(Y.shape[:-1]))
 
 
 def _segments_ll_seq(tex: Texton, Y: Array, ids: Array) -> Array:
