@@ -19,7 +19,7 @@ __all__ = ["main"]
 # The command families, in the order of ``mtex --help``; each module's ``register(sub)`` adds
 # its sub-commands. A new command family is a module with a ``register`` function, listed here.
 _COMMANDS = (
-    "_motion_cmds",  # info, render, examples
+    "_motion_cmds",  # info, render, examples, mirror
     "_demo",  # demo
     "_texture_cmds",  # learn, segment, synth, choreograph
     "_implicit",  # implicit-synth, track

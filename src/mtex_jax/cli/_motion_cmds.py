@@ -1,4 +1,5 @@
-"""``mtex info``, ``mtex render``, ``mtex examples``: looking at motion files."""
+"""``mtex info``, ``mtex render``, ``mtex examples``, ``mtex mirror``: looking at motion files and
+mirroring them."""
 
 from __future__ import annotations
 
@@ -54,6 +55,27 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_mirror(args: argparse.Namespace) -> int:
+    from ..io import write_bvh
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".bvh":
+        raise ValueError(f"-o/--output must end in .bvh (the file written), got {str(out)!r}")
+    output(out, "bvh", (args.file,), args.force)
+    m = read_source(args.file)
+    axis = None if args.axis is None else "xyz".index(args.axis)
+    mirrored = m.mirror(axis)
+    write_bvh(out, mirrored)
+    sk = m.skeleton
+    pairs = sum(1 for i, j in enumerate(sk.mirror_pairs()) if i < j)
+    used = "xyz"[sk.lateral_axis() if axis is None else axis]
+    print(
+        f"wrote {out}: {m.n_frames} frames mirrored through the {used} axis "
+        f"({pairs} left-right joint pairs swapped)"
+    )
+    return 0
+
+
 def _cmd_examples(args: argparse.Namespace) -> int:
     from ..io import example_names, load_example, load_salsa, salsa_credit, salsa_split
 
@@ -75,7 +97,8 @@ def _cmd_examples(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``info``, ``render`` and ``examples`` to the ``mtex`` sub-command parsers."""
+    """Add ``info``, ``render``, ``examples`` and ``mirror`` to the ``mtex`` sub-command
+    parsers."""
     s = sub.add_parser(
         "info",
         help="describe a motion file",
@@ -116,3 +139,23 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the DeepMimic humanoid3d clips (read as example:NAME); print the CMU credit.",
     )
     s.set_defaults(func=_cmd_examples)
+
+    s = sub.add_parser(
+        "mirror",
+        help="mirror a motion left to right (the other side of the body leads)",
+        description="Reflect a motion left to right on its own skeleton: every joint takes the "
+        "reflected rotation of its left-right partner (joints paired by name: lThigh/rThigh, "
+        "left_hip/right_hip, ...), and the root's path is reflected through the vertical "
+        "plane of the lateral axis. Writes a BVH file.",
+    )
+    s.add_argument("file", help=SOURCE_HELP)
+    s.add_argument("-o", "--output", required=True, help="output .bvh")
+    s.add_argument(
+        "--axis",
+        choices=("x", "y", "z"),
+        default=None,
+        help="the world axis to reflect (default: the one along which the left and right "
+        "joints lie apart at rest)",
+    )
+    add_force(s)
+    s.set_defaults(func=_cmd_mirror)
