@@ -67,9 +67,11 @@ def test_the_test_tells_hurried_dancing_from_real_and_real_from_real_less(salsa3
     assert res.reference_auc is not None and res.reference_auc < 0.8, res
     assert res.auc > res.reference_auc + 0.15
     assert len(res.fold_aucs) == 5 and res.n_real == sum(m.n_frames // 60 for m in real)
-    again = two_sample_auc(real, fast, reference=salsa30[:8])
-    assert again == res  # a fixed seed: the same folds and the same trees
     json.dumps(res.as_dict())
+    # a fixed seed: the same folds and the same trees (on fewer clips: the property, not the
+    # figures)
+    small = two_sample_auc(real[:2], fast[:3], reference=salsa30[4:6])
+    assert two_sample_auc(real[:2], fast[:3], reference=salsa30[4:6]) == small
 
 
 def test_bad_input_is_named(salsa30, cmu_motions):

@@ -318,25 +318,33 @@ def gauss_newton_root(
     return theta, normal_eqs(theta)[0]
 
 
+class _Settings(eqx.Module):
+    """What the filter's program reads of a :class:`ParticleFilter`: the sizes and choices
+    (static: a new one compiles a new program) and the scales (arrays, in the data's dtype)."""
+
+    n_particles: int = eqx.field(static=True)
+    prior: str = eqx.field(static=True)
+    leaf: str = eqx.field(static=True)
+    candidates: int = eqx.field(static=True)
+    proposal: str = eqx.field(static=True)
+    likelihood: str = eqx.field(static=True)
+    gn_steps: int = eqx.field(static=True)
+    diffusion: tuple[float, float] = eqx.field(static=True)
+    beta: Array
+    noise: Array
+    cv_noise: Array
+    likelihood_sigma: Array
+    dof: Array
+
+
 def _track_impl(
-    db: MotionDatabase,
-    fm: FeatureMap,
-    problem: _Inputs,
-    key: PRNGKeyArray,
-    n_particles: int,
-    prior: str,
-    beta: Array,
-    noise: Array,
-    cv_noise: Array,
-    likelihood_sigma: Array,
-    leaf: str,
-    candidates: int,
-    proposal: str = "bootstrap",
-    likelihood: str = "gaussian",
-    dof: Array | float = 4.0,
-    gn_steps: int = 2,
-    diffusion: tuple[float, float] = (0.0, 0.0),
+    db: MotionDatabase, fm: FeatureMap, problem: _Inputs, key: PRNGKeyArray, settings: _Settings
 ) -> tuple[Array, Array, Array, Array]:
+    st = settings
+    n_particles, prior, leaf, candidates = st.n_particles, st.prior, st.leaf, st.candidates
+    proposal, likelihood, gn_steps = st.proposal, st.likelihood, st.gn_steps
+    diffusion, beta, noise, cv_noise = st.diffusion, st.beta, st.noise, st.cv_noise
+    likelihood_sigma, dof = st.likelihood_sigma, st.dof
     dim = fm.dim
     dt = db.windows.dtype
     jidx = np.asarray(problem.joints)
@@ -471,25 +479,22 @@ def run_particle_filter(
         confidence=pad_frames(conf, n_pad, axis=0),
         bone_scale=problem.bone_scale,
     )
-    out = _track_jit(
-        model.database,
-        model.feature_map,
-        inputs,
-        key,
-        int(pf.n_particles),
-        pf.dynamics,
-        jnp.asarray(pf.beta, dt),
-        jnp.asarray(pf.noise, dt),
-        jnp.asarray(pf.cv_noise, dt),
-        jnp.asarray(pf.setting("likelihood_sigma"), dt),
-        pf.leaf,
-        int(pf.candidates),
-        pf.proposal,
-        pf.setting("likelihood"),
-        jnp.asarray(pf.dof, dt),
-        int(pf.gn_steps),
-        (float(pf.setting("root_noise")), float(pf.setting("heading_noise"))),
+    settings = _Settings(
+        n_particles=int(pf.n_particles),
+        prior=pf.dynamics,
+        leaf=pf.leaf,
+        candidates=int(pf.candidates),
+        proposal=pf.proposal,
+        likelihood=pf.setting("likelihood"),
+        gn_steps=int(pf.gn_steps),
+        diffusion=(float(pf.setting("root_noise")), float(pf.setting("heading_noise"))),
+        beta=jnp.asarray(pf.beta, dt),
+        noise=jnp.asarray(pf.noise, dt),
+        cv_noise=jnp.asarray(pf.cv_noise, dt),
+        likelihood_sigma=jnp.asarray(pf.setting("likelihood_sigma"), dt),
+        dof=jnp.asarray(pf.dof, dt),
     )
+    out = _track_jit(model.database, model.feature_map, inputs, key, settings)
     mean_x, mean_psi, mean_root, ess = (np.asarray(a)[:T] for a in out)
     errs: tuple[np.ndarray | None, ...] = (None, None, None)
     if problem.truth is not None:

@@ -418,8 +418,10 @@ def _smooth(opts: MapSmoother, texture: Any, problem: TrackingProblem) -> TrackR
         prev = (jnp.asarray(p0, dt), jnp.asarray(psi0, dt))
     root_w = jnp.asarray(root_weights(D, body.root_cols, fps, opts.root_accel, opts.turn_accel), dt)
     run = _batch if opts.lag is None else _fixed_lag
-    args = (texture, body, tx, problem, X_start, n_init, prev, obs, conf, sigma, root_w, floor, dt)
-    X, fr, labels = run(opts, *args)
+    clip = _Clip(
+        texture, body, tx, problem, X_start, n_init, prev, obs, conf, sigma, root_w, floor, dt
+    )
+    X, fr, labels = run(opts, clip)
     X = np.asarray(X)
     n_all = X.shape[0]
     Xb = as_array(_pad_rows(X, bucket_length(n_all, TRACK_FRAMES)).astype(dt))
@@ -488,11 +490,32 @@ def _outputs(
 _outputs_jit = eqx.filter_jit(_outputs)
 
 
-def _frame_inputs(
-    body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps, contact=None
-):
+@dataclasses.dataclass(frozen=True)
+class _Clip:
+    """One clip's inputs of the batch and fixed-lag solves: the prior's texture and body, the
+    problem, the rigid start ``X_start`` (the known initial frames first), the observations
+    with their confidences, the pixel scale, root weights, floor and dtype."""
+
+    texture: Any
+    body: Body
+    tx: Any
+    problem: Any
+    X_start: Any
+    n_init: int
+    prev: Any
+    obs: Any
+    conf: Any
+    sigma: float
+    root_w: Any
+    floor: float
+    dt: Any
+
+
+def _frame_inputs(clip: _Clip, T_pad: int, fps: float, contact: Any = None) -> _Frame:
     """The solve's inputs of a clip padded to ``T_pad`` frames (confidence 0 in the padding and
     in the held initial frames)."""
+    body, tx, problem, obs, conf = clip.body, clip.tx, clip.problem, clip.obs, clip.conf
+    sigma, root_w, floor, dt, n_init = clip.sigma, clip.root_w, clip.floor, clip.dt, clip.n_init
     T = obs.shape[0]
     K = obs.shape[1]
     o = np.zeros((T_pad, K, 2))
@@ -528,16 +551,14 @@ def _pad_rows(X: np.ndarray, T_pad: int) -> np.ndarray:
     )
 
 
-def _batch(
-    opts, texture, body, tx, problem, X_start, n_init, prev, obs, conf, sigma, root_w, floor, dt
-):
+def _batch(opts: Any, clip: _Clip) -> tuple[Any, _Frame, Any]:
+    texture, body, tx, X_start, n_init = clip.texture, clip.body, clip.tx, clip.X_start, clip.n_init
+    prev, sigma, dt = clip.prev, clip.sigma, clip.dt
     n = X_start.shape[0]
     T_pad = bucket_length(n, TRACK_FRAMES)
     fps = float(body.feature_map.fps)
     contact = _floor_term(texture, body, T_pad, dt) if opts.floor_contact else None
-    fr = _frame_inputs(
-        body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps, contact
-    )
+    fr = _frame_inputs(clip, T_pad, fps, contact)
     fr = eqx.tree_at(lambda f: f.reproj.pixel_loss, fr, opts.pixel_loss)
     X = as_array(_pad_rows(X_start, T_pad).astype(dt))
     held = as_array((np.arange(T_pad) < n_init) | (np.arange(T_pad) >= n))
@@ -629,9 +650,9 @@ def _lag_run(
 _lag_run_jit = eqx.filter_jit(_lag_run)
 
 
-def _fixed_lag(
-    opts, texture, body, tx, problem, X_start, n_init, prev, obs, conf, sigma, root_w, floor, dt
-):
+def _fixed_lag(opts: Any, clip: _Clip) -> tuple[Any, Any, None]:
+    texture, body, X_start, n_init, dt = clip.texture, clip.body, clip.X_start, clip.n_init, clip.dt
+    obs, conf = clip.obs, clip.conf
     L = int(opts.lag)
     n = X_start.shape[0]
     fps = float(body.feature_map.fps)
@@ -643,32 +664,18 @@ def _fixed_lag(
         # seconds with bones) in one batch solve, after the known initial window, held
         t0 = min(n, n_init + max(L + 2, round(opts.bone_window * fps) if opts.bones else 0))
         first = dataclasses.replace(opts, lag=None)
-        Xb, fr_first, _ = _batch(
-            first,
-            texture,
-            body,
-            tx,
-            problem,
-            X0[:t0],
-            n_init,
-            prev,
-            obs[: t0 - n_init],
-            conf[: t0 - n_init],
-            sigma,
-            root_w,
-            floor,
-            dt,
+        head = dataclasses.replace(
+            clip, X_start=X0[:t0], obs=obs[: t0 - n_init], conf=conf[: t0 - n_init]
         )
+        Xb, fr_first, _ = _batch(first, head)
         X0 = np.concatenate([np.asarray(Xb), X0[t0:]])
-        floor = float(fr_first.floor)
+        clip = dataclasses.replace(clip, floor=float(fr_first.floor))
     if t0 >= n:
         return X0, fr_first, None
     T_pad = bucket_length(n, TRACK_FRAMES)
     W = L + 3
     contact = _floor_term(texture, body, W, dt) if opts.floor_contact else None
-    fr = _frame_inputs(
-        body, tx, problem, obs, conf, sigma, root_w, floor, dt, n_init, T_pad, fps, contact
-    )
+    fr = _frame_inputs(clip, T_pad, fps, contact)
     fr = eqx.tree_at(lambda f: f.reproj.pixel_loss, fr, opts.pixel_loss)
     if fr_first is not None:
         fr = eqx.tree_at(lambda f: f.bone_scale, fr, fr_first.bone_scale)
