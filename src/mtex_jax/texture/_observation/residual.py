@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._texton.checks import LOG_2PI, UNROLL_MAX_K, project_radius, sym
-from .base import FitOptions, ObservationModel, ResidualArrays
+from .base import MEMBER_FIELDS, FitOptions, ObservationModel, ResidualArrays
 
 if TYPE_CHECKING:
     from .._texton.stats import DynamicsStats
@@ -76,7 +76,7 @@ class ResidualObservation(ObservationModel):
         return {"res_a": self.a, "res_s2": self.s2}
 
     def from_arrays(self, arrays: ResidualArrays) -> ResidualObservation:
-        missing = [f"texton.{f}" for f in ("res_a", "res_s2") if f not in arrays]
+        missing = [f"texton.{f}" for f in MEMBER_FIELDS if f not in arrays]
         if missing:
             raise ValueError(f"a residual texture needs the arrays {missing}")
         return ResidualObservation(a=arrays["res_a"], s2=arrays["res_s2"])
