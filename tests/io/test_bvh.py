@@ -270,3 +270,106 @@ def test_deepmimic_to_bvh_round_trip(tmp_path):
     assert m2.skeleton.channels == m.skeleton.channels  # knees/elbows are 1-channel hinges
     err = np.max(np.abs(positions(m2) - positions(m))) / m.skeleton.size
     assert err < 1e-6
+
+
+# --------------------------------------------------------------------------------------------
+# hostile numbers (issue 57): a ValueError naming the file and the line, never an
+# OverflowError, a traceback or a NaN passed on
+# --------------------------------------------------------------------------------------------
+_GOOD = (
+    "HIERARCHY\nROOT hip\n{\n  OFFSET 0 0 0\n"
+    "  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n"
+    "  JOINT knee\n  {\n    OFFSET 0 -1 0\n    CHANNELS 3 Zrotation Xrotation Yrotation\n"
+    "    End Site\n    {\n      OFFSET 0 -1 0\n    }\n  }\n}\n"
+    "MOTION\nFrames: 3\nFrame Time: 0.1\n"
+    "0 1 0 0 0 0 10 0 0\n0 1 0 0 0 0 20 0 0\n0 1 0 0 0 0 30 0 0\n"
+)
+#: where a number goes: (1-based line, the line with the token as "@")
+_PLACES = {
+    "offset": (8, "    OFFSET 0 @ 0"),
+    "channels": (9, "    CHANNELS @ Zrotation Xrotation Yrotation"),
+    "frames": (17, "Frames: @"),
+    "frame_time": (18, "Frame Time: @"),
+    "frame_line": (20, "0 1 0 0 0 0 @ 0 0"),
+}
+
+
+def _bvh_with(tmp_path: Path, place: str, token: str) -> Path:
+    line, text = _PLACES[place]
+    lines = [str(ln) for ln in _GOOD.splitlines()]
+    lines[line - 1] = text.replace("@", token)
+    p = tmp_path / f"{place}.bvh"
+    p.write_text("\n".join(lines) + "\n")
+    return p
+
+
+HOSTILE_BVH_NUMBERS = [
+    # (token, message fragment)
+    ("9" * 401, "a 401-digit integer"),
+    ("-" + "1" * 401, "a 401-digit integer"),
+    ("9" * 5000, "a 5000-digit integer"),
+    ("1e400", "the number '1e400'"),
+    ("-1.5E+400", "the number '-1.5E+400'"),
+    ("nan", "non-finite value 'nan'"),
+    ("NaN", "non-finite value 'NaN'"),
+    ("NAN", "non-finite value 'NAN'"),
+    ("inf", "non-finite value 'inf'"),
+    ("INF", "non-finite value 'INF'"),
+    ("-Infinity", "non-finite value '-Infinity'"),
+    ("+infinity", "non-finite value '+infinity'"),
+]
+
+
+@pytest.mark.parametrize(("token", "frag"), HOSTILE_BVH_NUMBERS)
+@pytest.mark.parametrize("place", list(_PLACES))
+def test_hostile_numbers_name_the_file_and_line(tmp_path, place, token, frag):
+    p = _bvh_with(tmp_path, place, token)
+    with pytest.raises(ValueError) as ei:
+        mj.read_bvh(p)
+    msg = str(ei.value)
+    assert msg.startswith(f"{p}:{_PLACES[place][0]}: "), msg
+    assert frag in msg, msg
+    if "digit" in frag or "number" in frag:
+        assert "is too large for a float" in msg, msg
+    assert len(msg) < 300, msg  # the 5000 digits are not echoed
+    with pytest.raises(ValueError, match=f"^{p}:{_PLACES[place][0]}: "):
+        mj.read_motion(p)
+
+
+def test_denormals_and_negative_zero_are_numbers(tmp_path):
+    """A denormal (4e-320) is a finite float: read as its value, then checked like any value
+    (an offset or an angle is fine; a frame count or a frame time is not); -0.0 is zero."""
+    ref = mj.read_bvh(_bvh_with(tmp_path, "frame_line", "0"))
+    for token, value in [("4e-320", 4e-320), ("-0.0", -0.0), ("1e-400", 0.0)]:
+        m = mj.read_bvh(_bvh_with(tmp_path, "offset", token))
+        y = m.skeleton.offsets[1][1]
+        assert y == value and np.signbit(y) == np.signbit(value), (token, y)
+        m = mj.read_bvh(_bvh_with(tmp_path, "frame_line", token))  # an angle of 4e-320 degrees
+        q = np.asarray(m.rotations)  # a rotation by a denormal angle: denormal components
+        np.testing.assert_allclose(q, np.asarray(ref.rotations), rtol=0, atol=1e-300)
+    refusals = {
+        ("channels", "4e-320"): (9, "invalid channel count"),
+        ("frames", "4e-320"): (17, "invalid value '4e-320' for 'Frames:'"),
+        ("frame_time", "4e-320"): (18, "frame time"),
+        ("frames", "-0.0"): (17, "zero frames"),
+        ("frame_time", "-0.0"): (18, "Frame Time must be positive"),
+    }
+    for (place, token), (line, frag) in refusals.items():
+        p = _bvh_with(tmp_path, place, token)
+        with pytest.raises(ValueError) as ei:
+            mj.read_bvh(p)
+        assert str(ei.value).startswith(f"{p}:{line}: ") and frag in str(ei.value), ei.value
+
+
+@pytest.mark.parametrize("token", ["9" * 401, "1e400", "NaN", "-inf"])
+@pytest.mark.parametrize("place", ["offset", "frames", "frame_line"])
+def test_mtex_info_on_hostile_numbers_is_one_error_line(tmp_path, capsys, place, token):
+    from mtex_jax.cli import main
+
+    p = _bvh_with(tmp_path, place, token)
+    code = main(["info", str(p)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1, err
+    assert err.startswith(f"mtex: error: {p}:{_PLACES[place][0]}: "), err
+    assert "Traceback" not in err and "internal error" not in err, err

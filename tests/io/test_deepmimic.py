@@ -105,11 +105,11 @@ def test_deepmimic_malformed_inputs(tmp_path):
         (case("nonnum", nonnum), 6, "non-numeric"),
         (case("badq", badq), 8, "not a rotation"),
         (case("baddt", baddt), 6, "inconsistent frame time"),
-        (case("bigint", bigint), 7, "a 401-digit integer in frame 2 exceeds"),
+        (case("bigint", bigint), 7, "Frames[2][7]: a 401-digit integer is too large for a float"),
         (case("denormal", text=full.replace("0.85", "1e-320", 1)), None, None),
         (case("negzero", text=full.replace("0.85", "-0.0", 1)), None, None),
-        (case("nan", text=full.replace("0.85", "NaN", 1)), 5, "non-finite value in frame 0"),
-        (case("nanlower", text=full.replace("0.85", "nan", 1)), 5, "invalid JSON"),
+        (case("nan", text=full.replace("0.85", "NaN", 1)), 5, "Frames[0][2]: non-finite value NaN"),
+        (case("nanlower", text=full.replace("0.85", "nan", 1)), 5, "invalid JSON: 'nan' is not"),
         (case("truncated", text=full[: len(full) // 2]), None, "invalid JSON"),
         (case("zero", text='{"Loop": "wrap", "Frames": []}'), 1, "zero frames"),
         (case("nota", text=json.dumps({"Loop": "wrap"})), 1, "no 'Frames'"),
@@ -142,3 +142,96 @@ def test_read_motion_dispatch(tmp_path, cmu_files):
         mj.read_motion(other)
     with pytest.raises(ValueError, match="no such file"):
         mj.read_motion(tmp_path / "absent.bvh")
+
+
+# --------------------------------------------------------------------------------------------
+# hostile numbers (issue 57): a ValueError naming the file and the line, never an
+# OverflowError, a traceback or a NaN passed on
+# --------------------------------------------------------------------------------------------
+def _frame() -> list[float]:
+    f = [0.0333] + [0.0, 0.85, 0.0] + [1.0, 0.0, 0.0, 0.0] * 2
+    f += [1.0, 0, 0, 0] * 2 + [0.3] + [1.0, 0, 0, 0] * 2 + [0.2]
+    f += [1.0, 0, 0, 0] + [0.3] + [1.0, 0, 0, 0] * 2 + [0.2]
+    return f
+
+
+def _with_token(token: str, k: int, col: int) -> str:
+    """Four frames, one per line from line 5, value ``col`` of frame ``k`` written as
+    ``token`` (``k = -1``: the value of "Loop", line 2)."""
+    frames = [_frame() for _ in range(4)]
+    if k >= 0:
+        frames[k][col] = "@@"  # type: ignore[call-overload]
+        return _frames_text(frames).replace('"@@"', token)
+    return _frames_text(frames).replace('"wrap"', token)
+
+
+HOSTILE_JSON_NUMBERS = [
+    # (token, message fragment after "FILE:LINE: PATH: ")
+    ("9" * 401, "a 401-digit integer is too large for a float"),
+    ("-" + "1" * 401, "a 401-digit integer is too large for a float"),
+    ("9" * 5000, "a 5000-digit integer is too large for a float"),  # beyond Python's int limit
+    ("1e400", "the number '1e400' is too large for a float"),  # json.loads reads inf
+    ("-1.5E+400", "the number '-1.5E+400' is too large for a float"),
+    ("NaN", "non-finite value NaN"),
+    ("Infinity", "non-finite value Infinity"),
+    ("-Infinity", "non-finite value -Infinity"),
+    ("nan", "invalid JSON: 'nan' is not a JSON number"),
+    ("NAN", "invalid JSON: 'NAN' is not a JSON number"),
+    ("inf", "invalid JSON: 'inf' is not a JSON number"),
+    ("-INF", "invalid JSON: '-INF' is not a JSON number"),
+    ("-infinity", "invalid JSON: '-infinity' is not a JSON number"),
+]
+
+
+@pytest.mark.parametrize(("token", "frag"), HOSTILE_JSON_NUMBERS)
+@pytest.mark.parametrize(
+    ("k", "col", "path"),
+    [(0, 0, "Frames[0][0]"), (2, 7, "Frames[2][7]"), (3, 43, "Frames[3][43]"), (-1, 0, "Loop")],
+    ids=["duration", "quaternion", "last", "loop"],
+)
+def test_hostile_numbers_name_the_file_and_line(tmp_path, token, frag, k, col, path):
+    p = tmp_path / "hostile.txt"
+    p.write_text(_with_token(token, k, col))
+    line = 2 if k < 0 else 5 + k
+    with pytest.raises(ValueError) as ei:
+        mj.read_deepmimic(p)
+    msg = str(ei.value)
+    assert msg.startswith(f"{p}:{line}: "), msg
+    assert frag in msg, msg
+    if "invalid JSON" not in frag:
+        assert f"{p}:{line}: {path}: " in msg, msg
+    assert len(msg) < 300, msg  # the 5000 digits are not echoed
+
+
+def test_denormals_and_negative_zero_are_numbers(tmp_path):
+    """A denormal (4e-320) is a finite float: read as its value; -0.0 reads as zero."""
+    p = tmp_path / "ok.txt"
+    good = mj.read_deepmimic(_write(tmp_path / "good.txt", _with_token("0.0", 1, 1)))
+    for token, value in [("4e-320", 4e-320), ("-0.0", -0.0), ("-0", 0.0), ("1e-400", 0.0)]:
+        p.write_text(_with_token(token, 1, 1))  # the root x of frame 1
+        m = mj.read_deepmimic(p)
+        x = np.asarray(m.root_positions)[1, 0]
+        assert x == value and np.signbit(x) == np.signbit(value), (token, x)
+        np.testing.assert_array_equal(np.asarray(m.rotations), np.asarray(good.rotations))
+    p.write_text(_with_token("4e-320", 3, 0))  # the last keyframe's duration (unused)
+    assert mj.read_deepmimic(p).n_frames == 4
+    p.write_text(_with_token("-0.0", 1, 0))  # a duration must be positive
+    with pytest.raises(ValueError, match=rf"{p}:6: inconsistent frame time: frame 1 lasts -0 s"):
+        mj.read_deepmimic(p)
+
+
+def _write(p: Path, text: str) -> Path:
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("token", ["9" * 401, "1e400", "NaN", "-Infinity", "inf"])
+def test_mtex_info_on_hostile_numbers_is_one_error_line(tmp_path, capsys, token):
+    from mtex_jax.cli import main
+
+    p = _write(tmp_path / "clip.txt", _with_token(token, 2, 7))
+    code = main(["info", str(p)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1 and err.startswith(f"mtex: error: {p}:7: "), err
+    assert "Traceback" not in err and "internal error" not in err, err

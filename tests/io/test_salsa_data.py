@@ -143,3 +143,25 @@ def test_wheel_ships_the_salsa_data(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     where, frames = r.stdout.split()
     assert where.startswith(str(tmp_path / "site")) and frames == "1070"
+
+
+@pytest.mark.parametrize(
+    ("token", "frag"),
+    [
+        ("9" * 401, "fps: a 401-digit integer is too large for a float"),
+        ("1e400", "fps: the number '1e400' is too large for a float"),
+        ("NaN", "fps: non-finite value NaN"),
+        ("-Infinity", "fps: non-finite value -Infinity"),
+        ("inf", "invalid JSON: 'inf' is not a JSON number"),
+    ],
+)
+def test_hostile_numbers_in_salsa_json_name_the_line(tmp_path, token, frag):
+    """A damaged salsa.json with a number no float holds, or NaN / Infinity: the damaged-data
+    error, naming salsa.json and the line (issue 57), never an OverflowError."""
+    folder = _copy(tmp_path)
+    text = (folder / "salsa.json").read_text()
+    assert '\n "fps": 60.0,\n' in text  # line 3
+    (folder / "salsa.json").write_text(text.replace('"fps": 60.0', f'"fps": {token}', 1))
+    with pytest.raises(ValueError, match="damaged") as ei:
+        _salsa._load_pack(folder)
+    assert f"salsa.json:3: {frag}" in str(ei.value), ei.value

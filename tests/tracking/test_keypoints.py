@@ -322,8 +322,8 @@ def test_files_of_another_kind_and_broken_files(tmp_path, salsa_sk):
     refused("deep.json", "[" * 5000 + "]" * 5000, "nested 5000 levels")
     refused("count.json", json.dumps(_one(np.ones((2, 18, 3)))), r"detection 0 .*has 18 keypoints")
     big = '[{"image_id": 1, "keypoints": [' + "9" * 400 + ", 0, 1" + ", 0" * 48 + "]}]"
-    refused("big.json", big, "400-digit integer is too large for a float")
-    refused("huge.json", big.replace("9" * 400, "9" * 5000), "invalid JSON")
+    refused("big.json", big, r":1: \[0\]\.keypoints\[0\]: a 400-digit integer is too large for")
+    refused("huge.json", big.replace("9" * 400, "9" * 5000), ":1: .*5000-digit integer is too")
     text = json.dumps(_one(np.ones((1, 17, 3)))).replace("1.0", '"1.0"', 1)
     refused("str.json", text, "'1.0' is not a number")
     refused("bool.json", text.replace('"1.0"', "true", 1), "True is not a number")
@@ -430,7 +430,7 @@ def test_camera_with_extrinsics(tmp_path):
     [
         ({"focal": 0, "center": [1, 2]}, "focal length must be positive"),
         ({"focal": -5, "center": [1, 2]}, "focal length must be positive"),
-        ({"focal": float("nan"), "center": [1, 2]}, "focal must be finite"),
+        ({"focal": float("nan"), "center": [1, 2]}, "cam.json:1: focal: non-finite value NaN"),
         ({"focal": "800", "center": [1, 2]}, "focal' must be a number"),
         ({"fx": 1000, "fy": 1020, "center": [1, 2]}, "only square pixels are modelled"),
         ({"fx": 1000, "center": [1, 2]}, "fy"),
@@ -526,3 +526,113 @@ def test_keypoints_checks_and_writer_refusals(tmp_path):
     with pytest.raises(ValueError, match="positive confidence is not finite"):
         write_keypoints(tmp_path / "k.json", nan)
     assert not (tmp_path / "k.json").exists()
+
+
+# --------------------------------------------------------------------------- hostile numbers
+# issue 57: a ValueError naming the file and the line, never an OverflowError or a NaN passed on
+def _with_token(path, doc, where, token: str) -> tuple[str, int]:
+    """``doc`` written one value a line, the value at the path ``where`` as ``token``; the
+    file and the token's 1-based line."""
+    d = json.loads(json.dumps(doc))
+    inner = d
+    for k in where[:-1]:
+        inner = inner[k]
+    inner[where[-1]] = "@@"
+    text = json.dumps(d, indent=1)
+    line = text[: text.index('"@@"')].count("\n") + 1
+    path.write_text(text.replace('"@@"', token))
+    return str(path), line
+
+
+_TOO_LARGE = [
+    ("9" * 401, "a 401-digit integer is too large for a float"),
+    ("-" + "9" * 5000, "a 5000-digit integer is too large for a float"),
+    ("1e400", "the number '1e400' is too large for a float"),
+]
+_NOT_JSON = [("nan", "'nan' is not a JSON number"), ("-INF", "'-INF' is not a JSON number")]
+
+
+@pytest.mark.parametrize(("token", "frag"), _TOO_LARGE + _NOT_JSON)
+@pytest.mark.parametrize("score", [1.0, 0.0])  # a missing keypoint's pixel too
+def test_keypoint_numbers_no_float_holds_name_the_line(tmp_path, salsa_sk, token, frag, score):
+    kp = np.ones((3, 17, 3))
+    kp[2, 5, 2] = score
+    p, line = _with_token(tmp_path / "k.json", _one(kp), (2, "keypoints", 15), token)
+    with pytest.raises(ValueError) as e:
+        read_keypoints(p, salsa_sk)
+    msg = str(e.value)
+    assert msg.startswith(f"{p}:{line}: ") and frag in msg, msg
+    if "JSON" not in frag:
+        assert f"{p}:{line}: [2].keypoints[15]: " in msg, msg
+
+
+@pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity"])
+def test_keypoint_nan_and_infinity_only_as_a_missing_pixel(tmp_path, salsa_sk, token):
+    """NaN and Infinity may be a missing keypoint's pixel (score 0, the documented format);
+    as a score, a detection score, the pixel of a seen keypoint, ``category_id`` or ``fps``
+    they are refused with the line."""
+    kp = np.ones((3, 17, 3))
+    kp[2, 5, 2] = 0.0
+    p, _ = _with_token(tmp_path / "ok.json", _one(kp), (2, "keypoints", 15), token)
+    out = read_keypoints(p, salsa_sk)
+    assert np.isfinite(np.asarray(out.pixels)).all()
+    cases = [
+        ((2, "keypoints", 16), np.ones((3, 17, 3)), "keypoint 'left_shoulder': NaN/inf pixel"),
+        ((1, "keypoints", 17), np.ones((3, 17, 3)), "'left_shoulder': the score is not finite"),
+        ((0, "score"), np.ones((3, 17, 3)), "detection 0 (image_id 0): the detection score"),
+        ((1, "category_id"), np.ones((3, 17, 3)), "category_id is not finite"),
+    ]
+    for where, kp, frag in cases:
+        p, line = _with_token(tmp_path / "bad.json", _one(kp), where, token)
+        with pytest.raises(ValueError) as e:
+            read_keypoints(p, salsa_sk)
+        msg = str(e.value)
+        assert msg.startswith(f"{p}:{line}: ") and frag in msg, (where, msg)
+    own = {"format": "mtex-keypoints", "names": ["lShin"], "fps": 30, "frames": [[[1, 2, 1]]]}
+    for where, frag in [(("fps",), "fps must be finite"), (("frames", 0, 0, 1), "NaN/inf pixel")]:
+        p, line = _with_token(tmp_path / "own.json", own, where, token)
+        with pytest.raises(ValueError) as e:
+            read_keypoints(p, salsa_sk)
+        msg = str(e.value)
+        assert msg.startswith(f"{p}:{line}: ") and frag in msg, (where, msg)
+
+
+def test_keypoint_denormals_and_negative_zero_are_numbers(tmp_path, salsa_sk):
+    kp = np.ones((3, 17, 3))
+    ref = read_keypoints(_dump(tmp_path / "ref.json", _one(kp)), salsa_sk)
+    j = ref.names.index("left_shoulder")
+    for token, value in [("4e-320", 4e-320), ("-0.0", -0.0)]:
+        p, _ = _with_token(tmp_path / "k.json", _one(kp), (2, "keypoints", 15), token)
+        x = np.asarray(read_keypoints(p, salsa_sk).pixels)[2, j, 0]
+        assert x == value and np.signbit(x) == np.signbit(value), (token, x)
+        p, _ = _with_token(tmp_path / "s.json", _one(kp), (2, "keypoints", 17), token)
+        c = np.asarray(read_keypoints(p, salsa_sk).confidence)[2, j]  # a score of 4e-320
+        assert c == abs(value), (token, c)
+
+
+@pytest.mark.parametrize(
+    ("token", "frag"),
+    [*_TOO_LARGE, *_NOT_JSON, ("NaN", "non-finite value NaN"), ("-Infinity", "non-finite")],
+)
+@pytest.mark.parametrize(
+    "where", [("focal",), ("center", 1), ("rotation", 2, 0), ("translation", 2)]
+)
+def test_camera_hostile_numbers_name_the_line(tmp_path, token, frag, where):
+    doc = {"focal": 800, "center": [1, 2], "rotation": np.eye(3).tolist(), "translation": [0] * 3}
+    p, line = _with_token(tmp_path / "cam.json", doc, where, token)
+    with pytest.raises(ValueError) as e:
+        read_camera(p)
+    msg = str(e.value)
+    assert msg.startswith(f"{p}:{line}: ") and frag in msg, msg
+    if "JSON" not in frag:
+        path = where[0] + "".join(f"[{i}]" for i in where[1:])
+        assert f"{p}:{line}: {path}: " in msg, msg
+
+
+def test_camera_denormals_and_negative_zero_are_numbers(tmp_path):
+    doc = {"focal": 800, "center": [1, 2], "rotation": np.eye(3).tolist(), "translation": [0] * 3}
+    for token, value in [("4e-320", 4e-320), ("-0.0", -0.0)]:
+        p, _ = _with_token(tmp_path / "cam.json", doc, ("translation", 2), token)
+        cam, posed = read_camera(p)
+        z = float(np.asarray(cam.translation)[2])
+        assert posed and z == value and np.signbit(z) == np.signbit(value), (token, z)

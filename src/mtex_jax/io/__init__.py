@@ -19,6 +19,13 @@ from ._deepmimic import (
     parse_deepmimic as parse_deepmimic,
     read_deepmimic as read_deepmimic,
 )
+
+# the number rule of the package's text readers (issue 57), for the readers of other
+# subpackages (tracking's keypoint and camera files); not in __all__: not public API
+from ._numbers import (
+    json_value_line as json_value_line,
+    load_json as load_json,
+)
 from ._readers import (
     read_motion as read_motion,
 )

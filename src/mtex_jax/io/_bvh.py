@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 
 from ..core import MAX_ABS_VALUE, MAX_FRAMES, atomic_write, check_frame_time, read_input
 from ..motion import Motion, Skeleton
-from ._bvh_hierarchy import NUMBER, Tokens, parse_hierarchy
+from ._bvh_hierarchy import Tokens, parse_hierarchy
+from ._numbers import number_problem, show_token
 
 __all__ = ["euler_to_quat", "parse_bvh", "quat_to_euler", "read_bvh", "write_bvh"]
 
@@ -21,7 +22,6 @@ _AXIS = {"X": 0, "Y": 1, "Z": 2}
 # a character that no decimal number of a frame line holds (Python's float() also reads
 # "1_0", "inf", "nan" and "infinity"; a BVH number is digits, sign, point and exponent only)
 _NOT_NUMERIC = re.compile(r"[^0-9eE+\-.\s]")
-_NON_FINITE = ("nan", "inf", "infinity")
 
 
 def parse_bvh(text: str, source: str = "<string>", *, max_frames: int = MAX_FRAMES) -> Motion:
@@ -59,12 +59,8 @@ def parse_bvh(text: str, source: str = "<string>", *, max_frames: int = MAX_FRAM
         bad = _NOT_NUMERIC.search(ln)
         if bad is not None:
             tok = next(t for t in ln.split() if bad.group() in t)
-            what = (
-                "non-finite value"
-                if tok.lower().lstrip("+-") in _NON_FINITE
-                else "non-numeric token"
-            )
-            raise ValueError(f"{source}:{i + k + 1}: {what} {tok!r} in frame {k}")
+            problem = number_problem(tok, f" in frame {k}")
+            raise ValueError(f"{source}:{i + k + 1}: {problem or f'non-numeric token {tok!r}'}")
     toks_per_line = [ln.split() for ln in data]
     for k, tl in enumerate(toks_per_line):
         if len(tl) != nc:
@@ -79,18 +75,17 @@ def parse_bvh(text: str, source: str = "<string>", *, max_frames: int = MAX_FRAM
         )
     try:
         values = np.array(list(itertools.chain.from_iterable(toks_per_line)), dtype=np.float64)
-    except ValueError:
-        for k, tl in enumerate(toks_per_line):
-            for t in tl:
-                if not NUMBER.fullmatch(t):
-                    raise ValueError(
-                        f"{source}:{i + k + 1}: non-numeric token {t!r} in frame {k}"
-                    ) from None
-        raise
+    except ValueError:  # a token such as "1e" or "." (only number characters got here)
+        values = None
+    if values is None or not np.isfinite(values).all():  # 1e400, or 400 digits: inf
+        # name the first token that is no strict decimal of a finite float
+        start = 0 if values is None else int(np.argmin(np.isfinite(values))) // max(nc, 1)
+        for k in range(start, n_frames):
+            for t in toks_per_line[k]:
+                if (problem := number_problem(t, f" in frame {k}")) is not None:
+                    raise ValueError(f"{source}:{i + k + 1}: {problem}")
+        raise ValueError(f"{source}:{i + 1}: non-numeric frame values")  # not reached
     values = values.reshape(n_frames, nc)
-    if not np.all(np.isfinite(values)):
-        k = int(np.nonzero(~np.all(np.isfinite(values), axis=1))[0][0])
-        raise ValueError(f"{source}:{i + k + 1}: non-finite value in frame {k}")
     big = np.abs(values) > MAX_ABS_VALUE
     if big.any():
         k = int(np.nonzero(big.any(axis=1))[0][0])
@@ -114,14 +109,14 @@ def _header_value(
     if not ln.startswith(key):
         raise ValueError(f"{source}:{i + 1}: expected {key!r}, found {ln[:40]!r}")
     rest = ln[len(key) :].strip()
-    try:
-        if not NUMBER.fullmatch(rest):
-            raise ValueError
-        v = float(rest)
-        if not np.isfinite(v) or (integer and v != int(v)):
-            raise ValueError
-    except ValueError:
-        raise ValueError(f"{source}:{i + 1}: invalid value {rest!r} for {key!r}") from None
+    problem = number_problem(rest)
+    if problem is not None:
+        raise ValueError(
+            f"{source}:{i + 1}: invalid value {show_token(rest)} for {key!r}: {problem}"
+        )
+    v = float(rest)
+    if integer and v != int(v):
+        raise ValueError(f"{source}:{i + 1}: invalid value {show_token(rest)} for {key!r}")
     return v, i + 1
 
 
@@ -259,7 +254,10 @@ def read_bvh(path: str | os.PathLike[str], *, max_frames: int = MAX_FRAMES) -> M
         ValueError: on malformed input, naming the file and line (truncated file, wrong number
             of values on a frame line, non-numeric or non-finite token, unknown keyword or
             channel, zero frames, invalid frame time; numbers are strict decimals: ``1_0``,
-            ``inf`` and ``nan`` are refused) and on input beyond the limits of
+            ``inf``, ``nan`` and ``Infinity`` in any case are refused, and so is a decimal no
+            float64 holds, a 401-digit integer or ``1e400``; a denormal, ``4e-320``, is read
+            as its value and ``-0.0`` as zero, wherever a number goes: OFFSET, CHANNELS,
+            ``Frames:``, ``Frame Time:``, frame lines) and on input beyond the limits of
             :mod:`mtex_jax.core` (a file larger than ``MAX_INPUT_BYTES`` or not a regular file,
             more than ``max_frames`` frames or ``MAX_JOINTS`` joints,
             joints nested deeper than ``MAX_DEPTH``, a frame time outside

@@ -3,19 +3,13 @@ file gets a clear error instead of a ``RecursionError``), within the joint and d
 
 from __future__ import annotations
 
-import re
 from collections.abc import Iterator
-
-import numpy as np
 
 from ..core import MAX_ABS_VALUE, MAX_DEPTH, MAX_JOINTS
 from ..motion import POSITION_CHANNELS, ROTATION_CHANNELS, Skeleton
+from ._numbers import NUMBER, number_problem, show_token
 
 __all__ = ["NUMBER", "Tokens", "parse_hierarchy"]
-
-#: A strict decimal number of a BVH file (no ``1_0``, ``inf`` or ``nan``, which ``float``
-#: accepts).
-NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 
 _CHANNEL_CANON = {c.lower(): c for c in ROTATION_CHANNELS + POSITION_CHANNELS}
 
@@ -51,17 +45,17 @@ class Tokens:
         return line
 
     def number(self, what: str) -> float:
+        """The next token as a number (see :mod:`mtex_jax.io._numbers`: a strict decimal of
+        a finite float, denormals read as they are), else an error naming the line."""
         tok, line = self.next(what)
-        try:
-            v = float(tok)
-            if np.isfinite(v) and not NUMBER.fullmatch(tok):
-                raise ValueError
-        except ValueError:
-            raise self.error(line, f"non-numeric token {tok!r} where {what} was expected") from None
-        if not np.isfinite(v):
-            raise self.error(line, f"non-finite value {tok!r} for {what}")
+        problem = number_problem(tok, f" for {what}")
+        if problem is not None:
+            raise self.error(line, problem)
+        v = float(tok)
         if abs(v) > MAX_ABS_VALUE:
-            raise self.error(line, f"value {tok} for {what} exceeds {MAX_ABS_VALUE:g} in magnitude")
+            raise self.error(
+                line, f"value {show_token(tok)} for {what} exceeds {MAX_ABS_VALUE:g} in magnitude"
+            )
         return v
 
     def offset(self) -> tuple[float, float, float]:

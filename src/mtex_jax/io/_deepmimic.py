@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -13,10 +12,10 @@ from ..core import (
     MAX_FRAME_TIME,
     MAX_FRAMES,
     check_frame_time,
-    check_json_depth,
     read_input,
 )
 from ..motion import Motion, Skeleton, slerp
+from ._numbers import load_json
 
 __all__ = ["HUMANOID3D", "parse_deepmimic", "read_deepmimic"]
 
@@ -137,15 +136,9 @@ def parse_deepmimic(text: str, source: str = "<string>", *, max_frames: int = MA
     """Parse DeepMimic JSON motion text (see :func:`read_deepmimic`); a leading UTF-8
     byte-order mark is skipped."""
     text = text.removeprefix("\ufeff")
-    check_json_depth(text, source)  # json.loads recurses: refuse deep nesting first
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ValueError(
-            f"{source}:{e.lineno}: invalid JSON: {e.msg} at column {e.colno} (truncated file?)"
-        ) from None
-    except (ValueError, RecursionError) as e:  # e.g. an integer of more than 4300 digits
-        raise ValueError(f"{source}: invalid number in JSON: {str(e)[:120]}") from None
+    # numbers no float holds (a 401-digit integer, 1e400) and NaN / Infinity: refused, with
+    # the line; JSON nested too deeply: refused before parsing
+    doc = load_json(text, source)
     if not isinstance(doc, dict) or "Frames" not in doc:
         raise ValueError(f"{source}:1: not a DeepMimic motion (no 'Frames' list)")
     frames = doc["Frames"]
@@ -275,9 +268,16 @@ def read_deepmimic(path: str | os.PathLike[str], *, max_frames: int = MAX_FRAMES
     duration, snapped to the nearest integer when within 0.1 % (0.033332 s → 30 Hz). The skeleton is
     :data:`HUMANOID3D` (joints in depth-first order, so :func:`write_bvh` round-trips).
 
+    Numbers: a number no float64 holds (a 401-digit integer, ``1e400``, which Python's
+    ``json`` reads as inf) and ``NaN``, ``Infinity`` or ``-Infinity`` anywhere in the file are
+    refused with the line (other spellings, ``nan`` or ``inf``, are not JSON); a denormal
+    (``4e-320``) is read as its value (a duration is then checked like any other), ``-0.0``
+    as zero.
+
     Raises:
         ValueError: naming the file and line for invalid JSON, a frame of the wrong length, a
-            non-numeric or non-finite value, zero frames, or an inconsistent frame duration;
+            non-numeric or non-finite value, a number no float holds, zero frames, or an
+            inconsistent frame duration;
             and on input beyond the limits of :mod:`mtex_jax.core`: a file larger than
             ``MAX_INPUT_BYTES`` or not a regular file, JSON nested deeper than
             ``MAX_DEPTH`` (refused before parsing, without recursion), more than

@@ -13,7 +13,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import io
-import json
 import zipfile
 from importlib import resources
 from importlib.resources.abc import Traversable
@@ -22,6 +21,7 @@ from typing import Any, overload
 import numpy as np
 
 from ..motion import Motion, Skeleton
+from ._numbers import load_json
 
 __all__ = ["load_salsa", "salsa_credit", "salsa_names", "salsa_split"]
 
@@ -60,13 +60,19 @@ def _load_pack(folder: Traversable) -> _Pack:
     """Read and check ``salsa.json`` and ``salsa.npz`` in ``folder``.
 
     Raises:
-        ValueError: a missing or damaged file (checksum, format, shapes, values).
+        ValueError: a missing or damaged file (checksum, format, shapes, values; in
+            ``salsa.json`` invalid JSON, NaN, Infinity or a number no float holds, with the
+            line).
     """
     try:
-        meta = json.loads(folder.joinpath("salsa.json").read_text(encoding="utf-8"))
+        text = folder.joinpath("salsa.json").read_text(encoding="utf-8")
         data = folder.joinpath("salsa.npz").read_bytes()
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError) as e:
         raise _fail(folder, f"cannot read salsa.json / salsa.npz: {e}") from None
+    try:
+        meta = load_json(text, "salsa.json")
+    except ValueError as e:
+        raise _fail(folder, str(e)) from None
     if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
         raise _fail(folder, f"salsa.json is not in the format {_FORMAT!r}")
     if hashlib.sha256(data).hexdigest() != meta.get("sha256"):

@@ -14,7 +14,7 @@ import math
 import os
 import re
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import equinox as eqx
@@ -25,7 +25,6 @@ from jaxtyping import Array, Float
 
 from ..core import (
     atomic_write,
-    check_json_depth,
     check_real,
     check_size,
     describe_kind,
@@ -33,6 +32,7 @@ from ..core import (
     limit,
     read_input,
 )
+from ..io import json_value_line, load_json
 from ..motion import Skeleton, ground_axes
 from ._camera import Camera
 from ._problem import TrackingProblem
@@ -153,9 +153,19 @@ def _id_key(i: Any) -> Any:
     return i
 
 
-def _coco(dets: list, src: str) -> tuple:
-    """``(T, 17, 3)``: the best-scoring person detection of each image; and the image ids."""
+# ":LINE" of the value at a JSON path of the file read ("" when there is none)
+_Line = Callable[[tuple[str | int, ...]], str]
+
+
+def _non_finite(v: Any) -> bool:
+    return isinstance(v, float) and not math.isfinite(v)
+
+
+def _coco(dets: list, src: str, line: _Line) -> tuple:
+    """``(T, 17, 3)``: the best-scoring person detection of each image; the image ids; and the
+    JSON path of each frame's values (``path(t, i)``: value ``i`` of frame ``t``)."""
     best: dict[Any, tuple[float, np.ndarray | None]] = {}
+    index: dict[Any, int] = {}  # the detection of each image's best
     for n, d in enumerate(dets):
         if not isinstance(d, dict) or "image_id" not in d or "keypoints" not in d:
             raise ValueError(f"{src}: detection {n} is not an object with image_id and keypoints")
@@ -164,6 +174,8 @@ def _coco(dets: list, src: str) -> tuple:
             raise ValueError(f"{src}: detection {n}: image_id {i!r:.40} is not an int or string")
         where = f"detection {n} (image_id {i!r})"
         best.setdefault(i, (-math.inf, None))
+        if _non_finite(d.get("category_id")):
+            raise ValueError(f"{src}{line((n, 'category_id'))}: {where}: category_id is not finite")
         if d.get("category_id", 1) != 1 or kp == []:  # not a person, or no one found
             continue
         if not isinstance(kp, list) or len(kp) != 51:
@@ -173,19 +185,26 @@ def _coco(dets: list, src: str) -> tuple:
         s = d.get("score", np.mean(np.clip(np.nan_to_num(v[:, 2]), 0, 1)))
         s = float(_numbers([s], src, f"{where}: score")[0])
         if not math.isfinite(s):
-            raise ValueError(f"{src}: {where}: the detection score {s} is not finite")
+            at = line((n, "score"))
+            raise ValueError(f"{src}{at}: {where}: the detection score {s} is not finite")
         if best[i][1] is None or s > best[i][0]:
             best[i] = (s, v)
+            index[i] = n
     if len({type(i) for i in best}) > 1:
         raise ValueError(f"{src}: image ids mix integers and strings; they cannot be ordered")
     if not best:
         raise ValueError(f"{src}: no detections (an empty COCO results list)")
     ids = sorted(best, key=_id_key)
     none = np.zeros((17, 3))  # an image without a detection: every keypoint missing
-    return np.stack([none if (r := best[i][1]) is None else r for i in ids]), None, None, ids
+    v = np.stack([none if (r := best[i][1]) is None else r for i in ids])
+
+    def path(t: int, i: int) -> tuple[str | int, ...]:
+        return (index[ids[t]], "keypoints", i) if ids[t] in index else ()
+
+    return v, None, None, ids, path
 
 
-def _mtex_json(doc: dict, src: str) -> tuple[np.ndarray, tuple[str, ...], Any]:
+def _mtex_json(doc: dict, src: str, line: _Line) -> tuple:
     names, frames = doc.get("names"), doc.get("frames")
     if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
         raise ValueError(f"{src}: 'names' must be a non-empty list of joint names")
@@ -198,11 +217,23 @@ def _mtex_json(doc: dict, src: str) -> tuple[np.ndarray, tuple[str, ...], Any]:
             n = f"{len(fr)} keypoints" if isinstance(fr, list) else "no list"
             raise ValueError(f"{src}: frame {t} has {n}; expected {K} (one per name) [x, y, s]")
     v = _numbers([x for fr in frames for p in fr for x in p], src, "frames")
-    return v.reshape(len(frames), K, 3), tuple(names), doc.get("fps")
+    if _non_finite(fps := doc.get("fps")):
+        raise ValueError(f"{src}{line(('fps',))}: fps must be finite, got {fps}")
+
+    def path(t: int, i: int) -> tuple[str | int, ...]:
+        return ("frames", t, i // 3, i % 3)
+
+    return v.reshape(len(frames), K, 3), tuple(names), fps, None, path
 
 
 def _from_json(data: bytes, src: str) -> tuple:
-    """``(values (T, K, 3), names or None for COCO-17, fps, image ids or None)``."""
+    """``(values (T, K, 3), names or None for COCO-17, fps, image ids or None, line of a
+    value)``: ``line(t, i)`` is ``":LINE"`` of value ``i`` (x, y, score of each keypoint) of
+    frame ``t`` in the file.
+
+    NaN and Infinity are read (a missing keypoint's pixel may be anything); a number no float
+    holds (a 401-digit integer, ``1e400``) is refused with the line.
+    """
     try:
         text = data.decode("utf-8").removeprefix("\ufeff")
     except UnicodeDecodeError:
@@ -210,15 +241,16 @@ def _from_json(data: bytes, src: str) -> tuple:
         raise ValueError(f"{src}: a {kind}, not a keypoint file (JSON or .npz)") from None
     if text.lstrip()[:9].upper() == "HIERARCHY":
         raise ValueError(f"{src}: a BVH motion file, not a keypoint file")
-    check_json_depth(text, src)
-    try:
-        doc = json.loads(text)
-    except (ValueError, RecursionError) as e:  # also an integer of more than 4300 digits
-        raise ValueError(f"{src}: not a keypoint file: invalid JSON ({str(e)[:120]})") from None
-    if isinstance(doc, list):
-        return _coco(doc, src)
-    if isinstance(doc, dict) and doc.get("format") == "mtex-keypoints":
-        return (*_mtex_json(doc, src), None)
+    doc = load_json(text, src, what="keypoint file", nonfinite=True)
+
+    def line(path: tuple[str | int, ...]) -> str:
+        n = json_value_line(text, path) if path else None
+        return "" if n is None else f":{n}"
+
+    if isinstance(doc, list) or (isinstance(doc, dict) and doc.get("format") == "mtex-keypoints"):
+        read = _coco(doc, src, line) if isinstance(doc, list) else _mtex_json(doc, src, line)
+        v, names, fps, ids, path = read
+        return v, names, fps, ids, lambda t, i: line(path(t, i))
     what = f"a JSON {type(doc).__name__}"
     if isinstance(doc, dict):
         keys = ", ".join(map(repr, list(doc)[:8]))
@@ -253,7 +285,7 @@ def _from_npz(data: bytes, src: str) -> tuple:
         names = tuple(str(n) for n in names.astype(str))
     if fps is not None:
         fps = fps.item() if fps.shape == () and fps.dtype.kind in "iuf" else repr(fps)
-    return kp.astype(np.float64), names, fps, None
+    return kp.astype(np.float64), names, fps, None, lambda t, i: ""
 
 
 def _resolve(
@@ -322,14 +354,18 @@ def read_keypoints(
     Raises:
         ValueError: naming the file and the problem: empty, another kind of file, a wrong
             keypoint count, a non-finite pixel with a positive score (frame and keypoint
-            named), bad scores, unknown joint names, numbers no float can hold.
+            named), bad scores, unknown joint names, numbers no float can hold. In a JSON file
+            the line is named too: ``NaN`` and ``Infinity`` are read only as the pixel of a
+            missing keypoint (anywhere else, a score, ``fps``, ``category_id``, they are
+            refused); a number no float64 holds (a 401-digit integer, ``1e400``) is refused
+            anywhere; a denormal (``4e-320``) is read as its value, ``-0.0`` as zero.
     """
     src = str(path)
     data = read_input(path, "keypoint file")
     if not data.strip():
         raise ValueError(f"{src}: empty file; expected a keypoint file (COCO JSON or .npz)")
     read = _from_npz if data.startswith(b"PK\x03\x04") else _from_json
-    v, names, file_fps, ids = read(data, src)
+    v, names, file_fps, ids, line = read(data, src)
     T, K = v.shape[:2]
     if names is None and K != 17:
         raise ValueError(f"{src}: {K} keypoints per frame; COCO-17 has 17 (or give 'names')")
@@ -340,18 +376,24 @@ def read_keypoints(
     cols, kept, joints = _resolve(names, skeleton, mapping, src)
     xy, s = v[:, cols, :2], v[:, cols, 2]
 
-    def refuse(bad: np.ndarray, what: str) -> None:
+    def refuse(bad: np.ndarray, what: str, value: int | np.ndarray) -> None:
+        """Refuse the first keypoint of ``bad``, with the line of its score (``value`` 2) or
+        of its first pixel coordinate ``value`` marks (``(T, K, 2)``)."""
         if bad.any():
             t, k = (int(i) for i in np.argwhere(bad)[0])
             frame = f"frame {t}" + ("" if ids is None else f" (image_id {ids[t]!r})")
             at = f"pixel {tuple(xy[t, k].tolist())}, score {s[t, k]}; {int(bad.sum())} such"
-            raise ValueError(f"{src}: {frame}, keypoint {kept[k]!r}: {what} ({at})")
+            j = value if isinstance(value, int) else int(np.argmax(value[t, k]))
+            where = line(t, 3 * cols[k] + j)
+            raise ValueError(f"{src}{where}: {frame}, keypoint {kept[k]!r}: {what} ({at})")
 
     big = limit("MAX_ABS_VALUE")
-    refuse(~np.isfinite(s), "the score is not finite")
-    refuse(s < 0, "the score is negative")
-    refuse((s > 0) & ~np.isfinite(xy).all(-1), "NaN/inf pixel with a positive score (0: missing)")
-    refuse((s > 0) & (np.abs(xy) > big).any(-1), f"a pixel beyond ±{big:g}")
+    refuse(~np.isfinite(s), "the score is not finite", 2)
+    refuse(s < 0, "the score is negative", 2)
+    nan_px = ~np.isfinite(xy)
+    refuse((s > 0) & nan_px.any(-1), "NaN/inf pixel with a positive score (0: missing)", nan_px)
+    big_px = np.abs(xy) > big
+    refuse((s > 0) & big_px.any(-1), f"a pixel beyond ±{big:g}", big_px)
     return Keypoints(
         joints=tuple(joints),
         pixels=np.where((s > 0)[..., None], xy, 0.0),
@@ -431,17 +473,16 @@ def read_camera(path: str | os.PathLike[str], up_axis: int = 1) -> tuple[Camera,
     Raises:
         ValueError: naming the file: not a JSON object, unknown or missing fields, a focal
             length not positive and finite, non-square pixels, a rotation that is not one
-            (orthonormal within 1e-3, determinant +1; it is then made exact).
+            (orthonormal within 1e-3, determinant +1; it is then made exact); with the line,
+            invalid JSON, ``NaN`` or ``Infinity`` and numbers no float64 holds (a 401-digit
+            integer, ``1e400``). A denormal (``4e-320``) is read as its value, ``-0.0`` as
+            zero.
     """
     src = str(path)
     if isinstance(up_axis, bool) or up_axis not in (0, 1, 2):
         raise ValueError(f"read_camera: up_axis must be 0, 1 or 2, got {up_axis!r}")
     text = read_input(path, "camera file").decode("utf-8", "replace").removeprefix("\ufeff")
-    check_json_depth(text, src)
-    try:
-        doc = json.loads(text)
-    except (ValueError, RecursionError) as e:
-        raise ValueError(f"{src}: not a camera file: invalid JSON ({str(e)[:120]})") from None
+    doc = load_json(text, src, what="camera file")  # NaN, Infinity, 1e400 refused, with the line
     if not isinstance(doc, dict):
         raise ValueError(f"{src}: not a camera file: expected a JSON object with 'focal' etc.")
     if unknown := sorted(set(doc) - set(_CAMERA)):
