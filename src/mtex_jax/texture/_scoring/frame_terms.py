@@ -160,6 +160,13 @@ def frame_coefs(
     return ybar, cw, ic
 
 
+def has_residual(textons: Texton, Y: Array) -> bool:
+    """Whether the textons' state is smaller than the observation (``k < D``): then ``obs``
+    holds the residual's terms; full-dimensional textons (``k = D``) have none, and their
+    kernel (``full_terms``) returns ``obs ≡ 0``."""
+    return textons.C.shape[-1] < Y.shape[-1]
+
+
 def frame_terms_impl(
     textons: Texton,
     Y: Array,
@@ -208,7 +215,7 @@ def frame_terms_impl(
         assert ic is not None
         F = jnp.concatenate([F, ic["E"]], axis=1)
         init_c, init_const = ic["init_c"], ic["init_const"][:, None]
-    if k == D:  # no residual: the stacked-lag kernel
+    if not has_residual(textons, Y):  # the stacked-lag kernel
         return full_terms(cw, ic, Y - ybar, block, out_rows, n_active, textons.dof)
     dyn_const = cw["dyn_const"][:, None]
     obs_const = cw["obs_const"][:, None]

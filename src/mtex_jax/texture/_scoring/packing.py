@@ -20,7 +20,7 @@ import numpy as np
 from jaxtyping import Array, Int
 
 from .._texton.texton import Texton
-from .frame_terms import block_frames, frame_terms_impl
+from .frame_terms import block_frames, frame_terms_impl, has_residual
 from .scores import SegmentScorer, scorer_from_terms
 
 
@@ -129,6 +129,6 @@ def packed_scores_impl(
 
     past = t[None, :] >= n[:, None]  # (c, T)
     dyn = per_clip(dyn, 0.0, past | (t[None, :] < 2))
-    obs = per_clip(obs, 0.0, past)
+    obs = per_clip(obs, 0.0, past) if has_residual(textons, Yb) else None
     init = per_clip(init, -jnp.inf, t[None, :] >= n[:, None] - 1)
     return jax.vmap(scorer_from_terms)(dyn, obs, init)

@@ -10,7 +10,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._texton.checks import check_obs
 from .._texton.texton import Texton, check_texton
-from .frame_terms import block_frames, frame_terms_impl
+from .frame_terms import block_frames, frame_terms_impl, has_residual
 
 
 class SegmentScorer(eqx.Module):
@@ -146,17 +146,23 @@ def _segment_scores_impl(
     dyn, obs, init = frame_terms_impl(
         textons, Y, min(block, Y.shape[0]), with_init=True, check=check
     )
-    return scorer_from_terms(dyn, obs, init)
+    return scorer_from_terms(dyn, obs if has_residual(textons, Y) else None, init)
 
 
-def scorer_from_terms(dyn: Array, obs: Array, init: Array) -> SegmentScorer:
-    """Centred prefix sums of ``(N_t, T)`` frame terms (``dyn`` of frames 0, 1 unused)."""
+def scorer_from_terms(dyn: Array, obs: Array | None, init: Array) -> SegmentScorer:
+    """Centred prefix sums of ``(N_t, T)`` frame terms (``dyn`` of frames 0, 1 unused).
+    ``obs=None``: ``obs ≡ 0`` (k = D); zeros, not the cumsum of a constant, which XLA would
+    constant-fold at every compile (seconds for (4, 16, 2048), issue 57)."""
     T = dyn.shape[1]
     dyn_off = jnp.mean(dyn[:, 2:], axis=1) if T > 2 else jnp.zeros(dyn.shape[:1], dyn.dtype)
-    obs_off = jnp.mean(obs, axis=1)
     zeros = jnp.zeros((dyn.shape[0], 1), dyn.dtype)
     cum_dyn = jnp.concatenate([zeros, jnp.cumsum(dyn - dyn_off[:, None], axis=1)], axis=1)
-    cum_obs = jnp.concatenate([zeros, jnp.cumsum(obs - obs_off[:, None], axis=1)], axis=1)
+    if obs is None:
+        obs_off = jnp.zeros(dyn.shape[:1], dyn.dtype)
+        cum_obs = jnp.zeros((dyn.shape[0], T + 1), dyn.dtype)
+    else:
+        obs_off = jnp.mean(obs, axis=1)
+        cum_obs = jnp.concatenate([zeros, jnp.cumsum(obs - obs_off[:, None], axis=1)], axis=1)
     return SegmentScorer(
         init=init, cum_dyn=cum_dyn, cum_obs=cum_obs, dyn_offset=dyn_off, obs_offset=obs_off
     )
@@ -186,7 +192,7 @@ def batch_scores_impl(textons: Texton, Y: Array, check: bool = True) -> SegmentS
     dyn, obs, init = per_seq(dyn), per_seq(obs), per_seq(init)
     dyn = dyn.at[:, :, : min(2, T)].set(0.0)
     init = init.at[:, :, T - 1].set(-jnp.inf)
-    return jax.vmap(scorer_from_terms)(dyn, obs, init)
+    return jax.vmap(scorer_from_terms)(dyn, obs if has_residual(textons, Y) else None, init)
 
 
 _segment_scores_jit = eqx.filter_jit(_segment_scores_impl)
