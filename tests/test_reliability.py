@@ -341,7 +341,7 @@ def test_int_instead_of_key_is_a_clear_type_error(small_texture):
 
 
 def test_learn_tmax_below_tmin_reports_seconds(tmp_path, capsys):
-    argv = ["learn", "example:dance_a", "--tmin", "3", "--tmax", "1", "-o", str(tmp_path / "x")]
+    argv = ["learn", "example:dance_a", "--tmin", "3", "--tmax", "1", "-o", str(tmp_path / "x.npz")]
     code, _, err = cli(capsys, *argv)
     assert_one_line_error(code, err, "--tmax (1 s) must be at least --tmin (3 s)")
 

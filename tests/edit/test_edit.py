@@ -150,6 +150,14 @@ def test_an_infeasible_request_is_reported_not_nan(tex, syn):
     assert not res.met and float(res.position_error[0]) > 3.0
     text = res.report()
     assert "NOT all constraints met" in text and "nan" not in text.lower()
+    # one verdict, at the tolerance asked for: the report and met_within agree on either side
+    # of the miss (the CLI printed a 1 mm verdict and a --tolerance one that contradicted it)
+    for tol in (0.5 * res.miss, 2.0 * res.miss):
+        text = res.report(tolerance=tol)
+        verdicts = [ln for ln in text.splitlines() if "constraints met" in ln]
+        assert len(verdicts) == 1, text
+        assert verdicts[0].startswith("NOT") != res.met_within(tol), text
+        assert "largest miss " in verdicts[0] and "nan" not in verdicts[0]
 
 
 @pytest.mark.slow  # the default run checks the same solver in float32 (test_edit_banded)
@@ -305,6 +313,34 @@ def test_cli_edit_contacts_and_synth_clean(tmp_path, tex):
     e = mj.read_bvh(out)
     got = np.asarray(mj.forward_kinematics(e))[10, e.skeleton.index(hand)]
     assert np.linalg.norm(got - goal) < 2e-3  # BVH keeps 6 decimals
+
+
+def test_cli_edit_by_an_offset_gives_one_verdict_and_its_exit_status(tmp_path, tex):
+    """``mtex edit --by DX,DY,DZ`` moves the joint from where it is at the frame (issue 57: a
+    user had to guess ``--at``); the output ends in one verdict at ``--tolerance``, and the exit
+    status follows it."""
+    model = tmp_path / "tex.npz"
+    tex.save(model)
+    hand = _hand(tex)
+    walk = mj.load_example("walk").resample(FPS)
+    P = np.asarray(mj.forward_kinematics(walk))[10, walk.skeleton.index(hand)]
+    out = tmp_path / "e.bvh"
+    base = ("edit", str(model), "example:walk", "--joint", hand, "--frame", "10")
+    # a tolerance no solve meets (a nanometre): the verdict is NOT, the status 1, the file kept
+    r = _cli(*base, "--by", "0.05,0,0", "--tolerance", "1e-9", "-o", str(out))
+    assert r.returncode == 1, r.stdout + r.stderr[-2000:]
+    verdicts = [ln for ln in r.stdout.splitlines() if "constraints met" in ln]
+    assert len(verdicts) == 1 and verdicts[0].startswith("NOT all constraints met"), r.stdout
+    assert "(tolerance 1e-06 mm)" in verdicts[0], verdicts
+    assert not any(ln.startswith("all constraints met") for ln in r.stdout.splitlines())
+    assert f"target {P[0] + 0.05:.4f},{P[1]:.4f},{P[2]:.4f} m (--by)" in r.stdout, r.stdout
+    e = mj.read_bvh(out)
+    got = np.asarray(mj.forward_kinematics(e))[10, e.skeleton.index(hand)]
+    assert np.linalg.norm(got - (P + np.array([0.05, 0.0, 0.0]))) < 2e-3
+    r = _cli(*base, "--by", "0.05,0,0", "--at", "0,0,0", "-o", str(out))
+    assert r.returncode == 2 and "not allowed with" in r.stderr, r.stderr
+    r = _cli(*base, "--by", "0.05,nan,0", "-o", str(out))
+    assert r.returncode == 2 and "--by must be three finite numbers" in r.stderr, r.stderr
 
 
 def test_cli_bad_input_is_one_line(tmp_path, tex):

@@ -73,6 +73,37 @@ def test_gif_frames_timing_and_content(dance, tmp_path):
     assert changed == len(frames) - 1
 
 
+def _ink_box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    rows, cols = np.nonzero(mask)
+    assert rows.size, "nothing drawn"
+    return int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max())
+
+
+def test_gif_title_never_covers_the_frame_counter(dance, tmp_path):
+    """The choreograph GIF's long title was drawn over the frame counter (issue 57). On a
+    motion that stands still, what changes from frame to frame is the counter alone; what a
+    title adds is the title alone: their boxes must not meet."""
+    still = dance[np.zeros(8, dtype=np.int64)]
+    title = "example:salsa/60_01:10 -> example:salsa/60_01:900"
+    with_title, _, _ = gif_frames(render_gif(still, tmp_path / "t.gif", title=title))
+    blank, _, _ = gif_frames(render_gif(still, tmp_path / "b.gif", title=" "))
+    counter = np.abs(with_title[0].astype(int) - with_title[-1].astype(int)).max(axis=-1) > 60
+    drawn = np.abs(with_title[0].astype(int) - blank[0].astype(int)).max(axis=-1) > 60
+    r0, r1, c0, c1 = _ink_box(counter)
+    t0, t1, u0, u1 = _ink_box(drawn)
+    assert r1 < t0 or t1 < r0 or c1 < u0 or u1 < c0, ((r0, r1, c0, c1), (t0, t1, u0, u1))
+
+
+def test_gif_keeps_the_clip_duration(dance, tmp_path):
+    """150 frames at 30 fps play 5 s: the delays are 30 and 40 ms (GIF counts in 10 ms), not
+    30 ms each (4.5 s, 10 % fast)."""
+    clip = dance.resample(30.0)
+    clip = clip[np.arange(150) % clip.n_frames]
+    frames, durations, _ = gif_frames(render_gif(clip, tmp_path / "d.gif", size=(2, 2), dpi=40))
+    assert len(frames) == 150
+    assert sum(durations) == 5000
+
+
 def test_gif_fps_and_frame_range(dance, tmp_path):
     out = render_gif(
         dance, tmp_path / "part.gif", fps=20, frame_range=(10, 70), size=(3, 2), dpi=50

@@ -99,10 +99,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from ..texture import synthesize
     from ._texture_cmds import load_model
 
-    if args.output is not None and not args.output.lower().endswith(".json"):
-        raise ValueError(f"-o/--output must be a .json file, got {args.output!r}")
-    if args.plot is not None and not args.plot.lower().endswith(".png"):
-        raise ValueError(f"--plot must be a .png file, got {args.plot!r}")
     positive_int("synth", args.synth)
     if args.synth > MAX_SYNTHESES:
         raise ValueError(f"--synth {args.synth} exceeds the limit of {MAX_SYNTHESES}")

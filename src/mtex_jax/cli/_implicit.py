@@ -85,8 +85,6 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     positive("beta", args.beta)
     non_negative("noise", args.noise)
     out = Path(args.output)
-    if out.suffix.lower() != ".bvh":
-        raise ValueError(f"-o/--output must end in .bvh, got {out}")
     output(out, "bvh", args.clips, args.force)
     output(args.gif, "gif", (*args.clips, out), args.force, option="--gif")
     motions = _load(args.clips, args.fps)

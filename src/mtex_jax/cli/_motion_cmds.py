@@ -7,7 +7,7 @@ import argparse
 import time
 from pathlib import Path
 
-from ._validators import SOURCE_HELP, add_force, float_arg, output, read_source
+from ._validators import SOURCE_HELP, add_force, float_arg, int_arg, output, read_source
 
 __all__ = ["register"]
 
@@ -15,6 +15,15 @@ __all__ = ["register"]
 def _cmd_info(args: argparse.Namespace) -> int:
     m = read_source(args.file)
     sk = m.skeleton
+    if (args.joint is None) != (args.frame is None):
+        raise ValueError("--joint and --frame go together: a joint's position at a frame")
+    if args.joint is not None:
+        if args.joint not in sk.names:
+            near = [n for n in sk.names if n.lower() == args.joint.lower()]
+            hint = f"did you mean {near[0]}?" if near else "see --joints"
+            raise ValueError(f"--joint {args.joint!r} is not a joint of {args.file} ({hint})")
+        if not 0 <= args.frame < m.n_frames:
+            raise ValueError(f"--frame {args.frame} outside 0..{m.n_frames - 1}")
     n_rot = sum(1 for j in range(sk.n_joints) if sk.rotation_order(j))
     print(f"file:      {args.file}")
     print(f"frames:    {m.n_frames}")
@@ -24,6 +33,17 @@ def _cmd_info(args: argparse.Namespace) -> int:
     print(f"channels:  {sk.n_channels}")
     print(f"up axis:   {'xyz'[sk.up_axis]}")
     print(f"size:      {sk.size:.3f} (longest root-to-leaf chain, file units)")
+    if args.joint is not None:
+        import numpy as np
+
+        from ..motion import forward_kinematics
+
+        p = np.asarray(forward_kinematics(m)[args.frame, sk.names.index(args.joint)], np.float64)
+        xyz = ",".join(f"{float(v):.4f}" for v in p)
+        print(
+            f"{args.joint} at frame {args.frame} ({args.frame / m.fps:.3f} s): {xyz} "
+            f"(world, file units; {'xyz'[sk.up_axis]} up); 'mtex edit --at' takes this form"
+        )
     if args.joints:
         print("skeleton:")
         depth = sk.depth()
@@ -59,8 +79,6 @@ def _cmd_mirror(args: argparse.Namespace) -> int:
     from ..io import write_bvh
 
     out = Path(args.output)
-    if out.suffix.lower() != ".bvh":
-        raise ValueError(f"-o/--output must end in .bvh (the file written), got {str(out)!r}")
     output(out, "bvh", (args.file,), args.force)
     m = read_source(args.file)
     axis = None if args.axis is None else "xyz".index(args.axis)
@@ -102,10 +120,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser(
         "info",
         help="describe a motion file",
-        description="Print skeleton, frame rate, number of frames and duration of a motion.",
+        description="Print skeleton, frame rate, number of frames and duration of a motion; "
+        "with --joint J --frame F, where joint J is at frame F (world position).",
     )
     s.add_argument("file", help=SOURCE_HELP)
     s.add_argument("--joints", action="store_true", help="also print the joint tree")
+    s.add_argument(
+        "--joint", default=None, help="print this joint's world position at --frame (e.g. rHand)"
+    )
+    s.add_argument(
+        "--frame", type=int_arg, default=None, help="the frame of --joint (at the clip's rate)"
+    )
     s.set_defaults(func=_cmd_info)
 
     s = sub.add_parser(

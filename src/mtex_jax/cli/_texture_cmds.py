@@ -164,10 +164,6 @@ def _check_outputs(
 ) -> None:
     """Refuse output names of the wrong kind, outputs that are inputs and files of another
     kind (without ``force``) before any work is done."""
-    if not str(out).lower().endswith(".bvh"):
-        raise ValueError(f"-o/--output must be a .bvh file, got {out!r}")
-    if gif is not None and not str(gif).lower().endswith(".gif"):
-        raise ValueError(f"--gif must be a .gif file, got {gif!r}")
     output(out, "bvh", inputs, force)
     output(gif, "gif", (*inputs, out), force, option="--gif")
 

@@ -117,11 +117,6 @@ def add_arguments(s: argparse.ArgumentParser) -> None:
 
 
 # --------------------------------------------------------------------------- checks
-def _suffix(path: str | None, option: str, *suffixes: str) -> None:
-    if path is not None and Path(path).suffix.lower() not in suffixes:
-        raise ValueError(f"{option} must end in {' or '.join(suffixes)}, got {path!r}")
-
-
 def _center(text: str | None) -> tuple[float, float] | None:
     if text is None:
         return None
@@ -160,16 +155,12 @@ def _check_args(args: argparse.Namespace) -> list[str]:
     if args.lag is not None:
         positive_int("lag", args.lag)
     positive("pixel-noise", args.pixel_noise)
-    _suffix(args.output, "-o/--output", ".bvh")
-    _suffix(args.json, "--json", ".json")
-    _suffix(args.html, "--html", ".html", ".htm")
-    _suffix(args.overlay, "--overlay", ".png")
     inputs = [args.clips[0], args.keypoints] + ([args.camera] if args.camera else [])
     outs: list[str] = []
     for path, kind, option in (
         (args.output, "bvh", "-o/--output"),
         (args.json, "json", "--json"),
-        (args.html, "other", "--html"),
+        (args.html, "html", "--html"),
         (args.overlay, "png", "--overlay"),
     ):
         if path is None:

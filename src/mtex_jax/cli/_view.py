@@ -28,11 +28,8 @@ def _cmd_view(args: argparse.Namespace) -> int:
     from ..viz import write_html
 
     out = Path(args.output)
-    if out.suffix.lower() not in (".html", ".htm"):
-        raise ValueError(f"-o/--output must end in .html, got {str(out)!r}")
-    # an HTML page is "other" to mtex_jax.core.file_kind: one may replace an older page, but
-    # not an input or a motion or model file (without --force)
-    output(out, "other", args.files, args.force)
+    # one may replace an older page, but not an input or a motion or model file (without --force)
+    output(out, "html", args.files, args.force)
     positive("fps", args.fps)
     positive("seconds", args.seconds)
     if args.seconds > MAX_SECONDS:

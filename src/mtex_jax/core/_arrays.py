@@ -110,6 +110,11 @@ def load_arrays_json(
     try:
         st = os.stat(p)
     except FileNotFoundError:
+        if str(path).startswith("example:"):  # a shipped clip, named where a model belongs
+            raise ValueError(
+                f"{path}: example:NAME names a shipped motion clip, not a model file; learn a "
+                f"model from clips first (mtex learn {path} -o model.npz)"
+            ) from None
         raise ValueError(f"{p}: no such file") from None
     except OSError as e:
         raise ValueError(f"{p}: cannot read model file: {e.strerror or e}") from None

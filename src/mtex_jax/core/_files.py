@@ -35,8 +35,23 @@ _WORDS = {
     "json": "JSON file",
     "png": "PNG picture",
     "gif": "GIF animation",
+    "html": "HTML page",
     "npz": "NumPy archive (not an mtex_jax model)",
     "other": "file of unknown kind",
+}
+#: The file-name suffixes of each kind of output ``mtex`` writes: the name says what the file
+#: is (a model file named ``tex.png`` would be a zip archive a picture viewer cannot open).
+_SUFFIXES = {
+    "mtex_jax.MotionTexture": (".npz",),
+    "mtex_jax.ContactModel": (".npz",),
+    "mtex_jax.FeatureMap": (".npz",),
+    "npz": (".npz",),
+    "bvh": (".bvh",),
+    "deepmimic": (".json",),
+    "json": (".json",),
+    "png": (".png",),
+    "gif": (".gif",),
+    "html": (".html", ".htm"),
 }
 
 
@@ -109,8 +124,8 @@ def file_kind(path: str | os.PathLike[str]) -> str | None:
         ``"directory"``, ``"device"``, ``"fifo"`` or ``"special"`` for what is not a regular
         file; ``"empty"``; a model file's metadata kind (``"mtex_jax.MotionTexture"``,
         ``"mtex_jax.ContactModel"``, ...) or ``"npz"`` for another zip archive; ``"bvh"``,
-        ``"deepmimic"`` (JSON with ``"Frames"``), ``"json"``, ``"png"``, ``"gif"``; else
-        ``"other"``.
+        ``"deepmimic"`` (JSON with ``"Frames"``), ``"json"``, ``"png"``, ``"gif"``, ``"html"``;
+        else ``"other"``.
     """
     p = Path(path)
     try:
@@ -143,6 +158,8 @@ def file_kind(path: str | os.PathLike[str]) -> str | None:
         return "bvh"
     if text.startswith(b"{"):
         return "deepmimic" if b'"Frames"' in head else "json"
+    if text[:14].lower().startswith((b"<!doctype html", b"<html")):
+        return "html"
     return "other"
 
 
@@ -166,18 +183,27 @@ def check_output(
     Args:
         path: the file to write.
         kind: what will be written, a kind of :func:`file_kind` (``"bvh"``,
-            ``"mtex_jax.MotionTexture"``, ``"png"``, ...).
+            ``"mtex_jax.MotionTexture"``, ``"png"``, ...). A kind that has a file-name
+            suffix (``.npz`` for a model file, ``.bvh``, ``.png``, ``.gif``, ``.json``,
+            ``.html``) requires it, in any case.
         inputs: the files the command reads (``example:NAME`` sources are skipped): the output
             may not be one of them, with or without ``force``.
         force: allow replacing an existing file of another kind.
         option: the option that named ``path``, for the errors.
 
     Raises:
-        ValueError: the output is an input; it exists and is not a regular file; it is a file
-            of another kind and ``force`` is not set (the message says ``--force``).
+        ValueError: the name does not end in the suffix of ``kind``; the output is an input; it
+            exists and is not a regular file; it is a file of another kind and ``force`` is
+            not set (the message says ``--force``).
         FileNotFoundError: its folder does not exist (the message names ``path``).
     """
     p = Path(path)
+    suffixes = _SUFFIXES.get(kind)
+    if suffixes is not None and p.suffix.lower() not in suffixes:
+        raise ValueError(
+            f"{option} {p}: the file written is a {describe_kind(kind)}, so its name must end "
+            f"in {' or '.join(suffixes)}" + (f" (not {p.suffix})" if p.suffix else "")
+        )
     for src in inputs:
         s = str(src)
         if s.startswith("example:"):

@@ -28,6 +28,7 @@ where it stopped. Convergence is reported, never assumed.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import equinox as eqx
@@ -100,14 +101,27 @@ class EditResult(eqx.Module):
             raise ValueError("EditResult.Y must have shape (T, D)")
 
     @property
+    def miss(self) -> float:
+        """The largest miss, metres: of a position target, a planted foot's height or the
+        floor (infinite if the solution was not finite)."""
+        if not bool(self.finite):
+            return math.inf
+        errs = [float(np.max(np.asarray(self.position_error), initial=0.0))]
+        errs += [float(self.plant_height_error), float(self.floor_depth)]
+        return max(errs)
+
+    def met_within(self, tolerance: float = TOLERANCE) -> bool:
+        """Whether every position target, plant and the floor hold to ``tolerance`` metres."""
+        return self.miss <= tolerance
+
+    @property
     def met(self) -> bool:
         """Whether every position target, plant and the floor hold to 1 mm (one motion)."""
-        errs = [np.max(np.asarray(self.position_error), initial=0.0)]
-        errs += [float(self.plant_height_error), float(self.floor_depth)]
-        return bool(self.finite) and max(errs) <= TOLERANCE
+        return self.met_within(TOLERANCE)
 
-    def report(self) -> str:
-        """One paragraph for people: converged or not, and every constraint's error."""
+    def report(self, tolerance: float = TOLERANCE) -> str:
+        """One paragraph for people: converged or not, every constraint's error, and one
+        verdict: met or not within ``tolerance`` metres (default 1 mm)."""
         pe = np.asarray(self.position_error)
         lines = [
             f"solver {'converged' if bool(self.converged) else 'did NOT converge'} in "
@@ -125,12 +139,20 @@ class EditResult(eqx.Module):
             f"{1e3 * float(self.plant_height_error):.2f} mm; floor depth "
             f"{1e3 * float(self.floor_depth):.2f} mm"
         )
+        miss = "not finite" if not bool(self.finite) else _mm(self.miss)
+        verdict = f"largest miss {miss} (tolerance {_mm(tolerance)})"
         lines.append(
-            "all constraints met (1 mm)"
-            if self.met
-            else "NOT all constraints met: the request may be infeasible (see the errors)"
+            f"all constraints met: {verdict}"
+            if self.met_within(tolerance)
+            else f"NOT all constraints met: {verdict}; the request may be infeasible"
         )
         return "\n".join(lines)
+
+
+def _mm(metres: float) -> str:
+    """A distance in millimetres, two decimals, or two significant digits below 0.01 mm."""
+    mm = 1e3 * float(metres)
+    return f"{mm:.2f} mm" if mm == 0 or abs(mm) >= 0.01 else f"{mm:.2g} mm"
 
 
 def run_means(values: Array, plant: Array) -> Array:

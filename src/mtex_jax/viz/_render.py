@@ -259,9 +259,21 @@ def render_gif(
     if traj:
         panel.ax.legend(loc="upper right", fontsize=7, frameon=False, handlelength=1.2)
     width_digits = len(str(t_all - 1))
-    counter = fig.text(0.02, 0.98, "", ha="left", va="top", fontsize=8, family="monospace")
+    # the frame counter takes the top-left corner; with a title (which spans the top, and may
+    # be long) it moves to the bottom-left, so that the two never overlap
+    counter = fig.text(
+        0.02,
+        0.02 if title else 0.98,
+        "",
+        ha="left",
+        va="bottom" if title else "top",
+        fontsize=8,
+        family="monospace",
+    )
     if title:
-        fig.text(0.5, 0.98 if not traj else 0.93, title, ha="center", va="top", fontsize=10)
+        fig.text(
+            0.5, 0.98 if not traj else 0.93, title, ha="center", va="top", fontsize=10, wrap=True
+        )
     fig.text(0.98, 0.02, f"grid {step:g}", ha="right", va="bottom", fontsize=7, color="#808080")
 
     shown = _gif_frame_indices(start, stop, float(motion.fps), rate)
