@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -27,7 +29,7 @@ __all__ = ["register"]
 
 
 def _cmd_learn(args: argparse.Namespace) -> int:
-    from ..texture import LearnConfig, learn, learn_distributed, texture_summary
+    from ..texture import LearnConfig, learn_distributed, texture_summary
     from . import _distributed
 
     t0 = time.perf_counter()
@@ -35,6 +37,18 @@ def _cmd_learn(args: argparse.Namespace) -> int:
     if args.split_clips and not args.distributed:
         raise ValueError("--split-clips needs --distributed")
     output(args.output, "mtex_jax.MotionTexture", args.clips, args.force)
+    if args.resume and args.checkpoint is None:
+        raise ValueError("--resume needs --checkpoint FILE (the checkpoint to continue from)")
+    if args.checkpoint is not None:
+        if args.distributed:
+            raise ValueError("--checkpoint is not supported with --distributed")
+        output(
+            args.checkpoint,
+            "mtex_jax.LearnCheckpoint",
+            (*args.clips, args.output),
+            False,
+            option="--checkpoint",
+        )
     if args.fps is not None and not 0 < args.fps <= 10_000:
         raise ValueError(f"--fps must be in (0, 10000] frames per second, got {args.fps:g}")
     clips = list(args.clips)
@@ -92,11 +106,52 @@ def _cmd_learn(args: argparse.Namespace) -> int:
             print(f"{where}done in {time.perf_counter() - t0:.1f} s")
             return 0
     else:
-        tex = learn(motions, cfg, verbose=not args.quiet)
+        tex = _learn_checkpointed(args, motions, cfg)
+        if tex is None:
+            return 130
     tex.save(args.output)
     print(texture_summary(tex))
     print(f"wrote {args.output} in {time.perf_counter() - t0:.1f} s")
+    if args.checkpoint is not None and Path(args.checkpoint).exists():
+        Path(args.checkpoint).unlink()  # the model file holds what it kept
+        print(f"removed the checkpoint {args.checkpoint}")
     return 0
+
+
+def _learn_checkpointed(args: argparse.Namespace, motions: list[Any], cfg: Any) -> Any:
+    """``learn`` with ``--checkpoint``/``--resume``; on SIGINT or SIGTERM, one line on how to
+    resume and ``None`` (exit status 130)."""
+    import signal
+
+    from ..texture import learn
+
+    ck = args.checkpoint
+    if ck is not None and args.resume and not Path(ck).exists():
+        print(f"no checkpoint {ck} yet: learning from the start", flush=True)
+
+    def stop(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, stop)
+    try:
+        return learn(
+            motions,
+            cfg,
+            verbose=not args.quiet,
+            checkpoint=ck,
+            resume=bool(args.resume),
+        )
+    except KeyboardInterrupt:
+        if ck is None:
+            how = "nothing was kept (--checkpoint FILE keeps the EM iterations)"
+        elif Path(ck).exists():
+            how = f"the checkpoint {ck} keeps the EM iterations: run the same command with --resume"
+        else:
+            how = f"no EM iteration had ended, so {ck} was not written: run the command again"
+        print(f"mtex: interrupted; {how}", file=sys.stderr, flush=True)
+        return None
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def _cmd_segment(args: argparse.Namespace) -> int:
@@ -406,6 +461,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="prune textons with fewer training segments (default 3; 1: no pruning, the paper)",
     )
     s.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
+    s.add_argument(
+        "--checkpoint",
+        default=None,
+        metavar="FILE",
+        help="write the progress to FILE (.npz) after every EM iteration, atomically; an "
+        "interrupted learn continues from it with --resume (removed once the model is written)",
+    )
+    s.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue from --checkpoint FILE (the same clips and options): the model is the "
+        "one an uninterrupted learn writes, bit for bit",
+    )
     add_force(s)
     add_arguments(s)
     s.set_defaults(func=_cmd_learn)

@@ -266,12 +266,12 @@ class MotionTexture(eqx.Module):
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write to a ``.npz`` (arrays) with JSON metadata; no pickle."""
-        tex = self.textons
-        member = tex.observation.to_arrays(tex.sigma2)  # its parameters, or the white residual
-        arrays: dict[str, Any] = {
-            f"texton.{f}": np.asarray(v)
-            for f, v in [*((f, getattr(tex, f)) for f in TEXTON_FIELDS), *member.items()]
-        }
+        save_arrays_json(path, *self.to_arrays_json())
+
+    def to_arrays_json(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """The arrays and the JSON metadata of the model file (:meth:`save`); read back by
+        :func:`texture_of_arrays_json`."""
+        arrays, tmeta = texton_arrays(self.textons)
         arrays.update(
             M=np.asarray(self.M),
             pi=np.asarray(self.pi),
@@ -298,9 +298,7 @@ class MotionTexture(eqx.Module):
             "format_version": FORMAT_VERSION,
             "config": self.config.to_json_dict(),
             "threshold": self.threshold,
-            "texton_fields": [*TEXTON_FIELDS, *member],
-            "observation": self.textons.observation.name,
-            "dof": self.textons.dof,
+            **tmeta,
             "feature_map": None,
         }
         if self.feature_map is not None:
@@ -316,7 +314,7 @@ class MotionTexture(eqx.Module):
             }
             if self.contacts.stance is not None:
                 meta["contacts"]["stance"] = float(self.contacts.stance)
-        save_arrays_json(path, arrays, meta)
+        return arrays, meta
 
 
 _REQUIRED = ("M", "pi", "key_poses", "key_pose_labels", "segment_lengths", "segments", "history")
@@ -342,51 +340,82 @@ def load_texture(path: str | os.PathLike[str]) -> MotionTexture:
             f"(this mtex_jax reads version {FORMAT_VERSION})"
         )
     try:
-        fields = meta["texton_fields"]
-        missing = [f for f in fields if f"texton.{f}" not in arrays]
-        if missing:
-            raise ValueError(f"missing arrays {['texton.' + f for f in missing]}")
-        # files before the observation models: the paper's; no dof: Gaussian innovations
-        choice = observation_model(meta.get("observation", "paper"))
-        tf = {f: jnp.asarray(arrays[f"texton.{f}"]) for f in fields}
-        core = {f: tf.pop(f) for f in TEXTON_FIELDS if f in tf}
-        textons = Texton(**core, observation=choice.from_arrays(tf), dof=meta.get("dof"))
-        fm = None
-        if meta.get("feature_map") is not None:
-            fa = {k.split(".", 1)[1]: v for k, v in arrays.items() if k.startswith("feature_map.")}
-            fm = FeatureMap.from_arrays_json(fa, meta["feature_map"])
-        old = {
-            "observation": "paper",
-            "durations": "flat",
-            "selection": "none",
-            "dof": None,
-            "innovations": "white",
-        }
-        cfg_d = {**old, **meta["config"]}
-        if cfg_d.get("bic_thresholds") is not None:
-            cfg_d["bic_thresholds"] = tuple(cfg_d["bic_thresholds"])
-        cfg = LearnConfig(**cfg_d)
-        return MotionTexture(
-            textons=textons,
-            M=jnp.asarray(arrays["M"]),
-            pi=jnp.asarray(arrays["pi"]),
-            key_poses=jnp.asarray(arrays["key_poses"]),
-            key_pose_labels=jnp.asarray(arrays["key_pose_labels"]),
-            segment_lengths=jnp.asarray(arrays["segment_lengths"]),
-            segments=jnp.asarray(arrays["segments"]),
-            history=jnp.asarray(arrays["history"]),
-            feature_map=fm,
-            log_durations=(
-                None if "log_durations" not in arrays else jnp.asarray(arrays["log_durations"])
-            ),
-            innovations=_innovations_of(arrays),
-            residuals=_residuals_of(arrays),
-            contacts=_contacts_of(arrays, meta, fm),
-            config=cfg,
-            threshold=check_real(meta["threshold"], "threshold", low=0.0),
-        )
+        return texture_of_arrays_json(arrays, meta)
     except (KeyError, TypeError, ValueError, AttributeError, OverflowError, IndexError) as e:
         raise ValueError(f"{path}: invalid motion texture file: {e}") from None
+
+
+def texton_arrays(tex: Texton, prefix: str = "texton.") -> tuple[dict[str, np.ndarray], dict]:
+    """A texton stack's arrays (``prefix`` + field: the dynamics core, then its observation
+    member's parameters) and the metadata that reads them back (:func:`texton_of_arrays`):
+    the model file's layout."""
+    member = tex.observation.to_arrays(tex.sigma2)  # its parameters, or the white residual
+    arrays = {
+        f"{prefix}{f}": np.asarray(v)
+        for f, v in [*((f, getattr(tex, f)) for f in TEXTON_FIELDS), *member.items()]
+    }
+    meta = {
+        "texton_fields": [*TEXTON_FIELDS, *member],
+        "observation": tex.observation.name,
+        "dof": tex.dof,
+    }
+    return arrays, meta
+
+
+def texton_of_arrays(
+    arrays: dict[str, np.ndarray], meta: dict[str, Any], prefix: str = "texton."
+) -> Texton:
+    """The texton stack of :func:`texton_arrays`' arrays and metadata."""
+    fields = meta["texton_fields"]
+    missing = [f for f in fields if f"{prefix}{f}" not in arrays]
+    if missing:
+        raise ValueError(f"missing arrays {[prefix + f for f in missing]}")
+    # files before the observation models: the paper's; no dof: Gaussian innovations
+    choice = observation_model(meta.get("observation", "paper"))
+    tf = {f: jnp.asarray(arrays[f"{prefix}{f}"]) for f in fields}
+    core = {f: tf.pop(f) for f in TEXTON_FIELDS if f in tf}
+    dof = meta.get("dof")
+    return Texton(**core, observation=choice.from_arrays(tf), dof=dof)
+
+
+def texture_of_arrays_json(arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> MotionTexture:
+    """The :class:`MotionTexture` of a model file's arrays and metadata
+    (:meth:`MotionTexture.to_arrays_json`; :func:`load_texture` checks them first)."""
+    textons = texton_of_arrays(arrays, meta)
+    fm = None
+    if meta.get("feature_map") is not None:
+        fa = {k.split(".", 1)[1]: v for k, v in arrays.items() if k.startswith("feature_map.")}
+        fm = FeatureMap.from_arrays_json(fa, meta["feature_map"])
+    old = {
+        "observation": "paper",
+        "durations": "flat",
+        "selection": "none",
+        "dof": None,
+        "innovations": "white",
+    }
+    cfg_d = {**old, **meta["config"]}
+    if cfg_d.get("bic_thresholds") is not None:
+        cfg_d["bic_thresholds"] = tuple(cfg_d["bic_thresholds"])
+    cfg = LearnConfig(**cfg_d)
+    return MotionTexture(
+        textons=textons,
+        M=jnp.asarray(arrays["M"]),
+        pi=jnp.asarray(arrays["pi"]),
+        key_poses=jnp.asarray(arrays["key_poses"]),
+        key_pose_labels=jnp.asarray(arrays["key_pose_labels"]),
+        segment_lengths=jnp.asarray(arrays["segment_lengths"]),
+        segments=jnp.asarray(arrays["segments"]),
+        history=jnp.asarray(arrays["history"]),
+        feature_map=fm,
+        log_durations=(
+            None if "log_durations" not in arrays else jnp.asarray(arrays["log_durations"])
+        ),
+        innovations=_innovations_of(arrays),
+        residuals=_residuals_of(arrays),
+        contacts=_contacts_of(arrays, meta, fm),
+        config=cfg,
+        threshold=check_real(meta["threshold"], "threshold", low=0.0),
+    )
 
 
 def _innovations_of(arrays: dict[str, np.ndarray]) -> InnovationProcess | None:

@@ -125,6 +125,15 @@ class Runner:
         # the padded size last used by each program (_cap): the runner's own compile cache
         self._caps: dict[str, int] = {}
 
+    def caps(self) -> dict[str, int]:
+        """The padded size each program last used (:meth:`_cap`), to save in a checkpoint."""
+        return {k: int(v) for k, v in self._caps.items()}
+
+    def set_caps(self, caps: dict[str, int]) -> None:
+        """Restore the padded sizes of :meth:`caps` (a resumed learn pads as the
+        uninterrupted one did)."""
+        self._caps = {str(k): int(v) for k, v in caps.items()}
+
     def _cap(self, name: str, want: int, slack: int = 2) -> int:
         """A padded size ``>= want`` for the program ``name``: the previous one while it is at
         most ``slack`` times ``want``, so that a count that shrinks a little (segments, pruned

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -37,6 +38,7 @@ from .._noise.residual_bank import PLAUSIBLE_TAIL, plausible_bank
 from .._observation import OBSERVATION_MODELS, FullObservation
 from .._segmentation.segment import check_lengths
 from .._texton.select import choose_state_dim, n_params
+from .checkpoint import Checkpoint, SelectionState, learn_digest
 from .contacts import with_contacts
 from .em import PAD_E_STEP, Capacity, Runner
 from .init import (
@@ -162,6 +164,8 @@ def learn(
     *,
     verbose: bool = False,
     callback: Callable[[dict[str, Any]], None] | None = None,
+    checkpoint: str | os.PathLike[str] | None = None,
+    resume: bool = False,
 ) -> MotionTexture:
     """Learn a motion texture from clips (MT §4, design §4): greedy initialisation and hard EM.
 
@@ -178,6 +182,11 @@ def learn(
         callback: called after every EM iteration with a dict (``iteration``, ``n_textons``,
             ``objective_m``, ``objective_e``, ``changed`` (frames whose texton changed),
             ``seconds``).
+        checkpoint: a file (``.npz``) where the progress is written, atomically, after every
+            EM iteration (design §4.9); it must not exist unless ``resume``.
+        resume: continue from ``checkpoint`` if it exists (else start afresh). The model is
+            bit for bit the one an uninterrupted learn gives. A checkpoint of other clips or
+            another configuration is refused.
 
     Returns:
         the :class:`MotionTexture` of the EM iteration with the best objective
@@ -186,24 +195,38 @@ def learn(
 
     Raises:
         ValueError: empty data, sequences shorter than ``tmin`` (or not segmentable into
-            ``[tmin, tmax]``), inconsistent ``D``, NaN frames, ``tmin < 3``, ``tmax < tmin``.
+            ``[tmin, tmax]``), inconsistent ``D``, NaN frames, ``tmin < 3``, ``tmax < tmin``;
+            a checkpoint that exists without ``resume``, or is of another learn.
     """
     config = LearnConfig() if config is None else config
     if not isinstance(config, LearnConfig):
         raise TypeError(f"config must be a LearnConfig, got {type(config).__name__}")
     ys, fm, clips = check_data(data, config)
     check_lengths(config.tmin, config.tmax, max(y.shape[0] for y in ys))
+    search = (
+        config.bic_thresholds if config.threshold is None and config.n_textons is None else None
+    )
+    if checkpoint is not None and search:
+        raise ValueError(
+            "checkpoint: a learn that tries every threshold of bic_thresholds is not "
+            "checkpointed; give threshold or n_textons"
+        )
+    digest = learn_digest(ys, config)
     config = resolve_state_dim(ys, config, verbose)
     run = Runner(ys, config)
-    if config.threshold is None and config.n_textons is None and config.bic_thresholds:
+    ck = None if checkpoint is None else Checkpoint(checkpoint, digest, resume, run)
+    if ck is not None and ck.resumed and verbose:
+        print(f"[mtex learn] resuming from {checkpoint} ({ck.saved_stage()})", flush=True)
+    if search:
         settings = EMSettings(fm, verbose, callback)
         greedy = lambda th: greedy_init(ys, config, th)[0]
-        _, table, models = threshold_bic(run, config, config.bic_thresholds, greedy, settings)
+        _, table, models = threshold_bic(run, config, search, greedy, settings)
         best = int(np.argmin([r["bic"] for r in table]))
         return with_contacts(with_innovations(models[best], ys), clips, verbose)
     t0 = time.perf_counter()
     threshold, segs = greedy_segments(ys, config, verbose, t0)
-    model = em_and_selection(run, config, threshold, segs, EMSettings(fm, verbose, callback, t0))
+    settings = EMSettings(fm, verbose, callback, t0)
+    model = em_and_selection(run, config, threshold, segs, settings, ck)
     return with_contacts(with_innovations(model, ys), clips, verbose)
 
 
@@ -258,11 +281,31 @@ def _refit_config(config: LearnConfig) -> LearnConfig:
     return dataclasses.replace(config, max_iter=min(config.max_iter, 5))
 
 
-def em_and_selection(
-    run: Runner, config: LearnConfig, threshold: float, segs: Segs, settings: EMSettings
+def _em(
+    em: EM,
+    segs: Segs,
+    threshold: float,
+    settings: EMSettings,
+    ck: Checkpoint | None,
+    **kw: Any,
 ) -> MotionTexture:
-    """EM from the greedy segments, then (``config.selection == "bic"``) the BIC selection of
-    the textons (design §4.7).
+    """:func:`run_em` of the checkpoint's current stage: continued from its saved state if it
+    was made there, and saved after every iteration."""
+    if ck is None:
+        return run_em(em, segs, threshold, settings, **kw)
+    return run_em(em, segs, threshold, settings, start=ck.enter(), on_state=ck.save, **kw)
+
+
+def em_and_selection(
+    run: Runner,
+    config: LearnConfig,
+    threshold: float,
+    segs: Segs,
+    settings: EMSettings,
+    ck: Checkpoint | None = None,
+) -> MotionTexture:
+    """EM from the greedy segments, then (``config.selection`` ``"aic"`` or ``"bic"``) the
+    selection of the textons (design §4.7).
 
     With selection, the first EM runs at most 5 iterations: its many textons are only a
     starting point, and each selection round refits for 5 more. EM then runs to convergence
@@ -274,20 +317,37 @@ def em_and_selection(
         threshold: the greedy threshold of ``segs``.
         segs: the greedy segment rows ``(clip, start, length, label)``.
         settings: reporting and the feature map of every EM run.
+        ck: the learn's checkpoint (design §4.9): the stages done are skipped, the one it
+            was made in continues from its state.
 
     Returns:
         The model of the last EM run.
     """
+    saved = None if ck is None else ck.saved_stage()
     if config.selection == "none":
-        return run_em(EM(run, config), segs, threshold, settings, prune_initial=True)
-    short = EM(run, _refit_config(config))
-    model = run_em(short, segs, threshold, settings, prune_initial=True)
-    model, capacity = _backward_bic(run, config, model, settings)
+        if ck is not None:
+            ck.begin("em")
+        return _em(EM(run, config), segs, threshold, settings, ck, prune_initial=True)
+    sel = None if ck is None else ck.saved_selection()
+    if saved == "final":
+        assert sel is not None
+        model, capacity = sel.best, Capacity(*sel.capacity)
+    else:
+        if sel is None:
+            if ck is not None:
+                ck.begin("em")
+            short = EM(run, _refit_config(config))
+            model = _em(short, segs, threshold, settings, ck, prune_initial=True)
+        else:
+            model = sel.best
+        model, capacity = _backward_bic(run, config, model, settings, ck, sel)
     if settings.verbose:
         print("[mtex learn] EM on the selected textons", flush=True)
+    if ck is not None:
+        ck.begin("final")
     # with the selection's padded sizes, so that no program is compiled again
     final = EM(run, config, capacity)
-    return run_em(final, np.asarray(model.segments), threshold, settings, prev=model.textons)
+    return _em(final, np.asarray(model.segments), threshold, settings, ck, prev=model.textons)
 
 
 def greedy_segments(
@@ -347,7 +407,12 @@ def _model_criterion(model: MotionTexture, n_frames: int, w: float) -> float:
 
 
 def _backward_bic(
-    run: Runner, config: LearnConfig, model: MotionTexture, settings: EMSettings
+    run: Runner,
+    config: LearnConfig,
+    model: MotionTexture,
+    settings: EMSettings,
+    ck: Checkpoint | None = None,
+    start: SelectionState | None = None,
 ) -> tuple[MotionTexture, Capacity]:
     """Backward elimination by BIC, ``BIC = −2 log P(Y, H) + p log n`` (design §4.7).
 
@@ -370,6 +435,8 @@ def _backward_bic(
         config: the configuration, stored in the refitted models.
         model: the model to reduce (from EM on the greedy segments).
         settings: the refits' callback and feature map (they print nothing).
+        ck: the learn's checkpoint: each round's state is saved with its refit's iterations.
+        start: the state to continue from (a resumed learn; ``model`` is then its best).
 
     Returns:
         The selected model, and the capacity of the last round: the final EM on the
@@ -379,13 +446,27 @@ def _backward_bic(
     n = run.n_frames
     w = penalty_weight(config, n)
     name = config.selection.upper()
-    best, best_bic = model, _model_criterion(model, n, w)
-    m_cap = capacity_for(best.n_textons)
+    if start is None:
+        best, best_bic = model, _model_criterion(model, n, w)
+        m_cap = capacity_for(best.n_textons)
+        m = max(1, best.n_textons // 2)
+        rounds = 0
+    else:
+        best, best_bic, m, rounds, m_cap = (
+            start.best,
+            start.best_value,
+            start.m,
+            start.round,
+            start.m_cap,
+        )
     capacity = Capacity(m_step=m_cap)
     short = _refit_config(config)
-    m = max(1, best.n_textons // 2)
     while best.n_textons > 1:
         t0 = time.perf_counter()
+        if ck is not None:
+            ck.set_selection(SelectionState(best, best_bic, m, rounds, m_cap))
+            ck.begin("selection", rounds)
+        rounds += 1
         cap = capacity_for(best.n_textons)
         capacity = Capacity(cap if cap <= PAD_E_STEP else 1, m_cap)
         m = min(m, max(1, best.n_textons // 2))
@@ -407,7 +488,7 @@ def _backward_bic(
         if bound < best_bic:  # refit only when it can pay
             quiet = dataclasses.replace(settings, verbose=False, t0=t0)
             refit = EM(run, short, capacity)
-            cand = run_em(refit, segs, best.threshold, quiet, prev=tex)
+            cand = _em(refit, segs, best.threshold, quiet, ck, prev=tex)
             cand = dataclasses.replace(cand, config=config) if cand.config != config else cand
             b = _model_criterion(cand, n, w)
         if settings.verbose:
@@ -425,6 +506,10 @@ def _backward_bic(
             m //= 2
     if settings.verbose:
         print(f"[mtex learn] {name} selection: keep {best.n_textons} textons", flush=True)
+    if ck is not None:  # what the final EM starts from, in its checkpoints
+        ck.set_selection(
+            SelectionState(best, best_bic, m, rounds, m_cap, (capacity.textons, capacity.m_step))
+        )
     return best, capacity
 
 

@@ -304,6 +304,8 @@ def run_em(
     *,
     prev: Texton | None = None,
     prune_initial: bool = False,
+    start: EMState | None = None,
+    on_state: Callable[[EMState], None] | None = None,
 ) -> MotionTexture:
     """Hard EM from ``segs`` to convergence or ``em.config.max_iter`` iterations (design §4.6):
     ``init``, then ``step`` until ``terminate``, then the best iteration's model.
@@ -316,12 +318,17 @@ def run_em(
             ``settings.callback`` gets its record (:meth:`EM.step`) with ``seconds``.
         prev: the textons whose E-step gave ``segs`` (:meth:`EM.init`).
         prune_initial: drop the greedy textons of too few segments first (:meth:`EM.init`).
+        start: the state to continue from instead of :meth:`EM.init`'s (a resumed learn:
+            the state of a checkpoint, design §4.9).
+        on_state: called with the state after every iteration (a checkpoint's writer).
 
     Returns:
         The :class:`MotionTexture` of the iteration with the best E-step objective.
     """
-    state = em.init(segs, prev, prune_initial)
+    state = em.init(segs, prev, prune_initial) if start is None else start
     while not em.terminate(state):
         state, info = em.step(state)
+        if on_state is not None:
+            on_state(state)
         _report(info, settings, em.run.n_frames)
     return em.result(state, threshold, settings.feature_map)
