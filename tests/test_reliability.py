@@ -490,3 +490,51 @@ def test_every_subcommand_bad_arguments_one_line_exit_2(small_texture, tmp_path,
             n += 1
     assert n >= 40
     assert not Path("x.txt").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# issue 57: nothing but progress reaches the user's terminal, also on a loaded machine
+# --------------------------------------------------------------------------------------------
+_AFTER_LEARN = """
+import sys
+import mtex_jax as mj
+from mtex_jax.io import load_salsa, salsa_split
+
+tex = mj.load_texture(sys.argv[1])
+fm = tex.feature_map
+train, test = ([load_salsa(n).resample(fm.fps) for n in part] for part in salsa_split())
+print(float(tex.log_likelihood(test[0], mean=True)), [float(v) for v in tex.log_likelihood(test)])
+print(mj.metrics.density_report(tex, train, test))
+"""
+
+
+@pytest.mark.slow  # a default learn on the shipped split, with both cores kept busy
+def test_a_default_learn_and_log_likelihood_print_no_compiler_alarm(tmp_path):
+    """XLA printed "Constant folding an instruction is taking > 1s" alarms (twenty lines each)
+    after a learn followed by ``log_likelihood`` on a busy machine: the folding ran at every
+    compile, only its duration changed with the load. With both cores busy, the default
+    ``mtex learn`` on the shipped training clips, then ``log_likelihood`` and the density
+    report on the held-out clips, write nothing to stderr."""
+    from mtex_jax.io import salsa_split
+
+    env = {**__import__("os").environ, "MTEX_NO_CACHE": "1"}  # every program compiled here
+    spin = "import time\nt = time.time()\nwhile time.time() - t < 900: pass"
+    busy = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(2)]
+    try:
+        model = tmp_path / "tex.npz"
+        clips = [f"example:salsa/{n}" for n in salsa_split()[0]]
+        r = subprocess.run(
+            [sys.executable, "-m", "mtex_jax", "learn", *clips, "-o", str(model)],
+            capture_output=True, text=True, timeout=1800, env=env,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stderr[-3000:]
+        assert r.stderr == "", r.stderr[-3000:]
+        r = subprocess.run(
+            [sys.executable, "-c", _AFTER_LEARN, str(model)],
+            capture_output=True, text=True, timeout=1800, env=env,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stderr[-3000:]
+        assert r.stderr == "", r.stderr[-3000:]
+    finally:
+        for p in busy:
+            p.kill()

@@ -73,6 +73,11 @@ from ._limits import (
     limit as limit,
     set_limit as set_limit,
 )
+from ._memory import (
+    available_memory as available_memory,
+    check_memory as check_memory,
+    program_bytes as program_bytes,
+)
 
 __all__ = [
     "BUCKET_FRAMES",
@@ -98,11 +103,13 @@ __all__ = [
     "CompileCount",
     "as_array",
     "atomic_write",
+    "available_memory",
     "bucket_length",
     "check_count",
     "check_frame_time",
     "check_json_depth",
     "check_key",
+    "check_memory",
     "check_output",
     "check_real",
     "check_size",
@@ -116,6 +123,7 @@ __all__ = [
     "limit",
     "load_arrays_json",
     "pad_frames",
+    "program_bytes",
     "read_input",
     "remove_stale_temporaries",
     "save_arrays_json",

@@ -62,9 +62,12 @@ def forward_kinematics_arrays(
     batch = rotations.shape[:-2]
     n = int(np.prod(batch)) if batch else 1
     local_r = quat_to_matrix(rotations.reshape(n, j, 4))  # (N, J, 3, 3)
+    # the skeleton's offsets are one (J, 3) constant, never broadcast over the batch: XLA
+    # would constant-fold each level's gather of the broadcast, seconds at a million particles
+    off = None
+    trans = None
     if local_positions is None:
         off = jnp.asarray(skeleton.offsets_array, dtype=rotations.dtype)
-        trans = jnp.broadcast_to(off, (n, j, 3))
     else:
         trans = jnp.asarray(local_positions, dtype=rotations.dtype).reshape(n, j, 3)
     parents = np.asarray(skeleton.parents)
@@ -73,9 +76,12 @@ def forward_kinematics_arrays(
     for idx in _levels(skeleton):
         par = parents[idx]
         pr = world_r[:, par]
-        world_p = world_p.at[:, idx].set(
-            world_p[:, par] + jnp.einsum("nkij,nkj->nki", pr, trans[:, idx])
-        )
+        if trans is None:
+            assert off is not None
+            step = jnp.einsum("nkij,kj->nki", pr, off[idx])
+        else:
+            step = jnp.einsum("nkij,nkj->nki", pr, trans[:, idx])
+        world_p = world_p.at[:, idx].set(world_p[:, par] + step)
         world_r = world_r.at[:, idx].set(pr @ local_r[:, idx])
     if end_sites and skeleton.end_sites:
         ep = np.asarray(skeleton.end_site_parents)

@@ -52,6 +52,7 @@ confidence 0 counts nowhere, whatever its pixels.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Literal
 
 import equinox as eqx
@@ -61,7 +62,15 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from ..core import MAX_GENERATED_FRAMES, MAX_PARTICLES, bucket_length, check_count, pad_frames
+from ..core import (
+    MAX_GENERATED_FRAMES,
+    MAX_PARTICLES,
+    bucket_length,
+    check_count,
+    check_memory,
+    pad_frames,
+    program_bytes,
+)
 from ..implicit import ImplicitModel, MotionDatabase, tree_sample_indices, velocity_channels
 from ..motion import (
     FeatureMap,
@@ -429,6 +438,25 @@ def _track_impl(
 
 
 _track_jit = eqx.filter_jit(_track_impl)
+#: From this many particles the filter's memory is estimated before it runs, and a filter that
+#: needs more than the process can allocate is refused (core.check_memory).
+MEASURED_PARTICLES = 100_000
+_PROBE_PARTICLES = (1024, 2048)
+
+
+def _memory_estimate(args: tuple[Any, ...], n: int) -> int:
+    """The bytes the filter of ``n`` particles holds: XLA's memory analysis of the same program
+    at two small particle counts (arguments, outputs, temporaries), extrapolated linearly, as
+    every per-particle array is. Compiling the large program itself only to refuse it would
+    take minutes."""
+    *rest, settings = args
+    sizes = []
+    for m in _PROBE_PARTICLES:
+        probe = dataclasses.replace(settings, n_particles=m)
+        sizes.append(program_bytes(_track_jit.lower(*rest, probe).compile().compiled))
+    lo, hi = _PROBE_PARTICLES
+    per = max(0.0, (sizes[1] - sizes[0]) / (hi - lo))
+    return int(sizes[1] + per * (n - hi))
 
 
 class _Inputs(eqx.Module):
@@ -494,7 +522,11 @@ def run_particle_filter(
         likelihood_sigma=jnp.asarray(pf.setting("likelihood_sigma"), dt),
         dof=jnp.asarray(pf.dof, dt),
     )
-    out = _track_jit(model.database, model.feature_map, inputs, key, settings)
+    args = (model.database, model.feature_map, inputs, key, settings)
+    if pf.n_particles >= MEASURED_PARTICLES:  # measured before it runs: refused, not killed
+        need = _memory_estimate(args, pf.n_particles)
+        check_memory(need, f"track: {pf.n_particles:,} particles over {T:,} frames")
+    out = _track_jit(*args)
     mean_x, mean_psi, mean_root, ess = (np.asarray(a)[:T] for a in out)
     errs: tuple[np.ndarray | None, ...] = (None, None, None)
     if problem.truth is not None:
