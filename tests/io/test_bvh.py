@@ -12,6 +12,15 @@ from scipy.spatial.transform import Rotation
 import mtex_jax as mj
 
 AXES = "XYZ"
+#: a small valid BVH file: a hip and a knee, three frames
+_GOOD = (
+    "HIERARCHY\nROOT hip\n{\n  OFFSET 0 0 0\n"
+    "  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n"
+    "  JOINT knee\n  {\n    OFFSET 0 -1 0\n    CHANNELS 3 Zrotation Xrotation Yrotation\n"
+    "    End Site\n    {\n      OFFSET 0 -1 0\n    }\n  }\n}\n"
+    "MOTION\nFrames: 3\nFrame Time: 0.1\n"
+    "0 1 0 0 0 0 10 0 0\n0 1 0 0 0 0 20 0 0\n0 1 0 0 0 0 30 0 0\n"
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -201,14 +210,7 @@ def test_random_skeletons_fk_and_round_trip(tmp_path_factory, case):
 
 
 def test_reader_rejects_bad_files(tmp_path):
-    good = (
-        "HIERARCHY\nROOT hip\n{\n  OFFSET 0 0 0\n"
-        "  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n"
-        "  JOINT knee\n  {\n    OFFSET 0 -1 0\n    CHANNELS 3 Zrotation Xrotation Yrotation\n"
-        "    End Site\n    {\n      OFFSET 0 -1 0\n    }\n  }\n}\n"
-        "MOTION\nFrames: 3\nFrame Time: 0.1\n"
-        "0 1 0 0 0 0 10 0 0\n0 1 0 0 0 0 20 0 0\n0 1 0 0 0 0 30 0 0\n"
-    )
+    good = _GOOD
     p = tmp_path / "good.bvh"
     p.write_text(good)
     m = mj.read_bvh(p)
@@ -276,14 +278,6 @@ def test_deepmimic_to_bvh_round_trip(tmp_path):
 # hostile numbers (issue 57): a ValueError naming the file and the line, never an
 # OverflowError, a traceback or a NaN passed on
 # --------------------------------------------------------------------------------------------
-_GOOD = (
-    "HIERARCHY\nROOT hip\n{\n  OFFSET 0 0 0\n"
-    "  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n"
-    "  JOINT knee\n  {\n    OFFSET 0 -1 0\n    CHANNELS 3 Zrotation Xrotation Yrotation\n"
-    "    End Site\n    {\n      OFFSET 0 -1 0\n    }\n  }\n}\n"
-    "MOTION\nFrames: 3\nFrame Time: 0.1\n"
-    "0 1 0 0 0 0 10 0 0\n0 1 0 0 0 0 20 0 0\n0 1 0 0 0 0 30 0 0\n"
-)
 #: where a number goes: (1-based line, the line with the token as "@")
 _PLACES = {
     "offset": (8, "    OFFSET 0 @ 0"),
