@@ -150,8 +150,19 @@ def test_a_learn_killed_at_a_random_iteration_resumes_bit_for_bit(tmp_path):
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_an_interrupted_learn_says_in_one_line_how_to_resume(tmp_path, sig):
     out, ck = tmp_path / "out.npz", tmp_path / "ck.npz"
+    # Ctrl-C's handler, as in a terminal: a pytest-xdist worker ignores SIGINT, and a child that
+    # inherits SIG_IGN never sees it (as a job started with nohup)
+    terminal = (
+        "import runpy, signal, sys\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+        "sys.argv = ['mtex', *sys.argv[1:]]\n"
+        "runpy.run_module('mtex_jax', run_name='__main__', alter_sys=True)\n"
+    )
     p = subprocess.Popen(
-        _mtex(*_learn_args(out, ck)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        [sys.executable, "-c", terminal, *_learn_args(out, ck)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     assert p.stdout is not None
     for line in p.stdout:
