@@ -211,10 +211,12 @@ def learn(
             "checkpoint: a learn that tries every threshold of bic_thresholds is not "
             "checkpointed; give threshold or n_textons"
         )
-    digest = learn_digest(ys, config)
+    given = config  # a checkpoint's digest is of the configuration as given
     config = resolve_state_dim(ys, config, verbose)
     run = Runner(ys, config)
-    ck = None if checkpoint is None else Checkpoint(checkpoint, digest, resume, run)
+    ck = None
+    if checkpoint is not None:
+        ck = Checkpoint(checkpoint, learn_digest(ys, given), resume, run)
     if ck is not None and ck.resumed and verbose:
         print(f"[mtex learn] resuming from {checkpoint} ({ck.saved_stage()})", flush=True)
     if search:
@@ -287,12 +289,16 @@ def _em(
     threshold: float,
     settings: EMSettings,
     ck: Checkpoint | None,
+    stage: str | None = None,
     **kw: Any,
 ) -> MotionTexture:
-    """:func:`run_em` of the checkpoint's current stage: continued from its saved state if it
-    was made there, and saved after every iteration."""
+    """:func:`run_em` of the checkpoint's current stage (``stage``: it begins here; a
+    selection round begins before its E-step): continued from its saved state if it was made
+    there, and saved after every iteration."""
     if ck is None:
         return run_em(em, segs, threshold, settings, **kw)
+    if stage is not None:
+        ck.begin(stage)
     return run_em(em, segs, threshold, settings, start=ck.enter(), on_state=ck.save, **kw)
 
 
@@ -325,29 +331,24 @@ def em_and_selection(
     """
     saved = None if ck is None else ck.saved_stage()
     if config.selection == "none":
-        if ck is not None:
-            ck.begin("em")
-        return _em(EM(run, config), segs, threshold, settings, ck, prune_initial=True)
+        return _em(EM(run, config), segs, threshold, settings, ck, "em", prune_initial=True)
     sel = None if ck is None else ck.saved_selection()
     if saved == "final":
         assert sel is not None
         model, capacity = sel.best, Capacity(*sel.capacity)
     else:
         if sel is None:
-            if ck is not None:
-                ck.begin("em")
             short = EM(run, _refit_config(config))
-            model = _em(short, segs, threshold, settings, ck, prune_initial=True)
+            model = _em(short, segs, threshold, settings, ck, "em", prune_initial=True)
         else:
             model = sel.best
         model, capacity = _backward_bic(run, config, model, settings, ck, sel)
     if settings.verbose:
         print("[mtex learn] EM on the selected textons", flush=True)
-    if ck is not None:
-        ck.begin("final")
     # with the selection's padded sizes, so that no program is compiled again
     final = EM(run, config, capacity)
-    return _em(final, np.asarray(model.segments), threshold, settings, ck, prev=model.textons)
+    segs = np.asarray(model.segments)
+    return _em(final, segs, threshold, settings, ck, "final", prev=model.textons)
 
 
 def greedy_segments(
