@@ -626,6 +626,35 @@ _TEX: list[tuple[Any, ...]] = [
         False,
     ),
     ("meta-config-unknown-field", {}, lambda m: _set(m, ("config", "bogus"), 1), r"bogus", False),
+    # integers too large for a float (a 401-digit JSON number) where numbers are read
+    (
+        "meta-fps-401-digits",
+        {},
+        lambda m: _set(m, ("feature_map", "fps"), 10**400),
+        r"fps",
+        True,
+    ),
+    (
+        "meta-tmax-401-digits",
+        {},
+        lambda m: _set(m, ("config", "tmax"), 10**400),
+        r"tmax",
+        False,
+    ),
+    (
+        "meta-threshold-401-digits",
+        {},
+        lambda m: _set(m, ("threshold",), -(10**400)),
+        r"threshold",
+        False,
+    ),
+    (
+        "meta-dof-401-digits",
+        {},
+        lambda m: _set(m, ("dof",), 10**400),
+        r"dof",
+        False,
+    ),
     (
         "meta-kind-other",
         {},

@@ -24,6 +24,18 @@ def dance_pair_texture() -> mj.MotionTexture:
 
 
 @functools.cache
+def four_clip_texture() -> mj.MotionTexture:
+    """The paper's model (``k = 6``, segments of 12-36 frames, greedy threshold 0.3, three EM
+    iterations) learned from the embedded ``dance_a``, ``dance_b``, ``walk`` and ``run`` clips
+    at 30 Hz. The texture of test_sequence and test_long_synthesis."""
+    clips = [mj.load_example(n) for n in ("dance_a", "dance_b", "walk", "run")]
+    cfg = mj.LearnConfig(
+        tmin=12, tmax=36, state_dim=6, fps=30.0, threshold=0.3, max_iter=3, **PAPER
+    )
+    return mj.learn(clips, cfg)
+
+
+@functools.cache
 def salsa30_texture(cmu_dir: Path) -> mj.MotionTexture:
     """The paper's model (``k = 6``, segments of 30-90 frames, greedy threshold 0.3, two EM
     iterations) learned from the first three CMU salsa clips (``cmu_dir``, sorted by name) at

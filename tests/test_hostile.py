@@ -6,6 +6,21 @@ motions and motion files, indexing, the numbers of every CLI flag, and the overw
 every command that writes. Each case asserts the error type and message (or a correct
 result). The default run takes the representative cases; ``-m slow`` runs all of them. Under
 an address-space limit, the size cases fail before they allocate 2 GiB or run 60 s.
+
+The families of issue 57 that need a process of their own live beside this file:
+
+- limits at their value, under ``RLIMIT_AS``: ``test_limits_at_value.py`` (every ``MAX_*``),
+  ``test_long_synthesis_memory.py`` (a million frames by ``synthesize`` and ``mtex synth``),
+  the particle limit in ``test_size_cases_stay_within_2_gib_and_60_s`` below and
+  ``tests/core/test_memory.py``;
+- a learn stopped by SIGKILL at a random EM iteration, or by SIGINT/SIGTERM, and resumed:
+  ``tests/texture/test_checkpoint.py`` (a distributed one: ``test_distributed.py``);
+- integers no float holds, NaN and infinity in every spelling, in each text format: the BVH
+  and DeepMimic cases here, ``tests/io`` (BVH, DeepMimic, salsa metadata),
+  ``tests/tracking/test_keypoints.py`` (keypoint and camera files) and the model-metadata
+  cases (``texture-meta-*-401-digits``) here;
+- nothing but progress lines on stderr after a default learn and ``log_likelihood`` with both
+  cores busy: ``test_reliability.py``.
 """
 
 from __future__ import annotations

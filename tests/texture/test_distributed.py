@@ -73,6 +73,37 @@ WORKER = textwrap.dedent(
 )
 
 
+def _run_workers(script, args, tmp_path, timeout, ok, meanwhile=None) -> list[str]:
+    """Run ``script`` as processes 0 and 1 of a job on a free loopback port (``args(pid)``:
+    their other arguments), ``meanwhile()`` in this process while they run; kill them after
+    ``timeout`` seconds; assert each exited 0 and printed ``ok``; return their outputs."""
+    port = _free_port()
+    env = child_env(XLA_FLAGS="", JAX_PLATFORMS="cpu")  # and the compilation cache
+    procs, logs = [], []
+    for pid in range(2):
+        log = open(tmp_path / f"worker{pid}.log", "w")  # closed below
+        logs.append(log)
+        cmd = [sys.executable, "-c", script, str(pid), str(port), *args(pid)]
+        procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env))
+    try:
+        if meanwhile is not None:
+            meanwhile()
+        deadline = time.monotonic() + timeout
+        for p in procs:
+            p.wait(timeout=max(1.0, deadline - time.monotonic()))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        for log in logs:
+            log.close()
+    out = [(tmp_path / f"worker{pid}.log").read_text() for pid in range(2)]
+    for pid, p in enumerate(procs):
+        assert p.returncode == 0 and ok in out[pid], out[pid][-3000:]
+    return out
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -104,30 +135,17 @@ def test_two_processes_equal_one(tmp_path, extra, tol):
     sums, hence ``tol``."""
     config = {**CONFIG, **extra}
     script = f"CLIPS = {CLIPS!r}\nFRAMES = {FRAMES}\nCONFIG = {config!r}\n" + WORKER
-    port = _free_port()
-    env = child_env(XLA_FLAGS="", JAX_PLATFORMS="cpu")  # and the compilation cache
-    procs, logs = [], []
-    for pid in range(2):
-        log = open(tmp_path / f"worker{pid}.log", "w")  # closed below
-        logs.append(log)
-        cmd = [sys.executable, "-c", script, str(pid), str(port), str(tmp_path / f"out{pid}.npz")]
-        procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env))
-    try:
-        # the reference while the workers run (three processes on the CI's two cores)
-        ref = learn(_clips(), LearnConfig(**config))
-        deadline = time.monotonic() + TIMEOUT
-        for p in procs:
-            p.wait(timeout=max(1.0, deadline - time.monotonic()))
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-        for log in logs:
-            log.close()
-    out = [(tmp_path / f"worker{pid}.log").read_text() for pid in range(2)]
-    for pid, p in enumerate(procs):
-        assert p.returncode == 0 and "WORKER_OK" in out[pid], out[pid][-3000:]
+    # the reference while the workers run (three processes on the CI's two cores)
+    holder: list = []
+    _run_workers(
+        script,
+        lambda pid: [str(tmp_path / f"out{pid}.npz")],
+        tmp_path,
+        TIMEOUT,
+        "WORKER_OK",
+        lambda: holder.append(learn(_clips(), LearnConfig(**config))),
+    )
+    ref = holder[0]
     got = [np.load(tmp_path / f"out{pid}.npz") for pid in range(2)]
     for g in got:
         errors = list(g["errors"])
@@ -193,3 +211,80 @@ def test_cli_distributed_settings_errors(capsys, monkeypatch, tmp_path):
     assert "must be an integer" in capsys.readouterr().err
     assert main(["learn", "--help"]) == 0
     assert "--process-id" in capsys.readouterr().out
+
+
+CK_WORKER = textwrap.dedent(
+    """
+    import sys
+    import jax
+
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.config.update("jax_enable_x64", True)
+    pid, port, folder, stop = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
+    jax.distributed.initialize(
+        f"127.0.0.1:{port}", num_processes=2, process_id=pid, local_device_ids=[0],
+        initialization_timeout=60,
+    )
+    from pathlib import Path
+    import numpy as np
+    from mtex_jax.io import load_salsa
+    from mtex_jax.texture import LearnConfig, learn_distributed
+
+    class Stop(Exception):
+        pass
+
+    clips = [load_salsa(n)[:FRAMES] for n in CLIPS]
+    mine = clips[:2] if pid == 0 else clips[2:]
+    cfg = LearnConfig(**CONFIG)
+    # each process names its own path: process 1's is never written nor read
+    ck = Path(folder) / f"ck{pid}.npz"
+    seen = [0]
+
+    def stop_at(info):
+        seen[0] += 1
+        if seen[0] == stop:
+            raise Stop
+
+    try:
+        learn_distributed(mine, cfg, callback=stop_at, checkpoint=ck)
+    except Stop:
+        pass
+    print("AFTER_STOP", pid, ck.exists(), flush=True)
+    try:  # without resume an existing checkpoint is refused, on every process
+        learn_distributed(mine, cfg, checkpoint=Path(folder) / "ck0.npz")
+    except ValueError as e:
+        print("REFUSED", pid, "exists: resume from it" in str(e), flush=True)
+    after = []
+    resumed = learn_distributed(
+        mine, cfg, checkpoint=ck, resume=True, callback=lambda info: after.append(1)
+    )
+    total = []
+    fresh = learn_distributed(mine, cfg, callback=lambda info: total.append(1))
+    a, b = jax.tree.leaves(resumed), jax.tree.leaves(fresh)
+    same = len(a) == len(b) and all(
+        np.asarray(x).dtype == np.asarray(y).dtype
+        and np.asarray(x).tobytes() == np.asarray(y).tobytes()
+        for x, y in zip(a, b)
+    )
+    print("RESUMED", pid, len(after), len(total), seen[0], same, flush=True)
+    """
+)
+
+
+def test_a_stopped_distributed_learn_resumes_from_process_0s_checkpoint(tmp_path):
+    """Two processes stopped at their third EM iteration: process 0 has written the
+    checkpoint, process 1 nothing (its own path stays absent); both resume from process 0's
+    file, run only the iterations left, and end with the model of an uninterrupted
+    distributed learn, bit for bit. An existing checkpoint without ``resume`` is refused on
+    both processes."""
+    script = f"CLIPS = {CLIPS!r}\nFRAMES = {FRAMES}\nCONFIG = {CONFIG!r}\n" + CK_WORKER
+    out = _run_workers(script, lambda pid: [str(tmp_path), "3"], tmp_path, 2 * TIMEOUT, "RESUMED")
+    assert "AFTER_STOP 0 True" in out[0] and "AFTER_STOP 1 False" in out[1]
+    assert not (tmp_path / "ck1.npz").exists()
+    for pid in range(2):
+        assert f"REFUSED {pid} True" in out[pid], out[pid][-2000:]
+        line = next(ln for ln in out[pid].splitlines() if ln.startswith("RESUMED"))
+        _, _, left, total, seen, same = line.split()
+        assert same == "True", line
+        # the iterations done before the stop are not run again
+        assert seen == "3" and int(left) == int(total) - 3 >= 1, line

@@ -273,7 +273,8 @@ def _two_textons_of_clip_1(tex, ys, tau=None):
     rows = np.flatnonzero(segs[:, 0] == 1)[:3]
     idx, path, lens = rows[:2], segs[rows[:2], 3], segs[rows[:2], 2]
     kp = np.asarray(tex.key_poses)
-    args = (path, lens, idx, None, kp[rows[2]], False, "whitened", "blend", "aligned")
+    plan = seq.PathPlan(path, lens.astype(np.int64), idx, None, kp[rows[2]], False)
+    args = (plan, "whitened", "blend", "aligned")
     key = jax.random.key(3)
     decay = None if tau is None else 1.0 / tau
     Y = np.asarray(synthesize_path(tex, key, *args, decay=decay))

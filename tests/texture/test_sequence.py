@@ -14,16 +14,12 @@ import pytest
 
 import mtex_jax as mj
 from mtex_jax.texture._synthesis import keyposes, sequence
-from paper_settings import PAPER
+from shared_textures import four_clip_texture
 
 
 @pytest.fixture(scope="module")
 def texture():
-    clips = [mj.load_example(n) for n in ("dance_a", "dance_b", "walk", "run")]
-    cfg = mj.LearnConfig(
-        tmin=12, tmax=36, state_dim=6, fps=30.0, threshold=0.3, max_iter=3, **PAPER
-    )
-    return mj.learn(clips, cfg)
+    return four_clip_texture()
 
 
 def texton(tex, i):

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..core import MAX_GENERATED_FRAMES
-from ..texture import OBSERVATION_MODELS
+from ..texture import CHUNK_FRAMES, OBSERVATION_MODELS
 from ._validators import (
     SOURCE_HELP,
     add_force,
@@ -40,8 +40,6 @@ def _cmd_learn(args: argparse.Namespace) -> int:
     if args.resume and args.checkpoint is None:
         raise ValueError("--resume needs --checkpoint FILE (the checkpoint to continue from)")
     if args.checkpoint is not None:
-        if args.distributed:
-            raise ValueError("--checkpoint is not supported with --distributed")
         output(
             args.checkpoint,
             "mtex_jax.LearnCheckpoint",
@@ -100,15 +98,13 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         f"observation model {cfg.observation}",
         flush=True,
     )
-    if args.distributed:
-        tex = learn_distributed(motions, cfg, verbose=not args.quiet)
-        if pid != 0:  # every process has the model; process 0 writes it
-            print(f"{where}done in {time.perf_counter() - t0:.1f} s")
-            return 0
-    else:
-        tex = _learn_checkpointed(args, motions, cfg)
-        if tex is None:
-            return 130
+    # distributed: process 0 writes the checkpoint and reads it to resume (design §4.9)
+    tex = _learn_checkpointed(args, motions, cfg, learn_distributed if args.distributed else None)
+    if tex is None:
+        return 130
+    if args.distributed and pid != 0:  # every process has the model; process 0 writes it
+        print(f"{where}done in {time.perf_counter() - t0:.1f} s")
+        return 0
     tex.save(args.output)
     print(texture_summary(tex))
     print(f"wrote {args.output} in {time.perf_counter() - t0:.1f} s")
@@ -118,12 +114,16 @@ def _cmd_learn(args: argparse.Namespace) -> int:
     return 0
 
 
-def _learn_checkpointed(args: argparse.Namespace, motions: list[Any], cfg: Any) -> Any:
-    """``learn`` with ``--checkpoint``/``--resume``; on SIGINT or SIGTERM, one line on how to
-    resume and ``None`` (exit status 130)."""
+def _learn_checkpointed(
+    args: argparse.Namespace, motions: list[Any], cfg: Any, learner: Any = None
+) -> Any:
+    """``learn`` (or ``learner``: ``learn_distributed``) with ``--checkpoint``/``--resume``;
+    on SIGINT or SIGTERM, one line on how to resume and ``None`` (exit status 130)."""
     import signal
 
     from ..texture import learn
+
+    learner = learn if learner is None else learner
 
     ck = args.checkpoint
     if ck is not None and args.resume and not Path(ck).exists():
@@ -134,7 +134,7 @@ def _learn_checkpointed(args: argparse.Namespace, motions: list[Any], cfg: Any) 
 
     old = signal.signal(signal.SIGTERM, stop)
     try:
-        return learn(
+        return learner(
             motions,
             cfg,
             verbose=not args.quiet,
@@ -259,8 +259,21 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         raise ValueError(f"--frames {n:,} exceeds the limit of {MAX_GENERATED_FRAMES:,}")
     if args.contacts and not args.clean:
         raise ValueError("--contacts is only used with --clean")
+    long = f"--frames {n:,} is more than one piece of {CHUNK_FRAMES:,} frames"
+    if n > CHUNK_FRAMES and args.gif:
+        raise ValueError(
+            f"--gif: {long} ({CHUNK_FRAMES / fps / 60:.0f} min), too long to draw; write the "
+            "BVH alone and render a shorter synthesis"
+        )
+    if n > CHUNK_FRAMES and args.clean:
+        raise ValueError(
+            f"--clean: {long}; the cleaning solve holds the whole motion: clean up to "
+            f"{CHUNK_FRAMES:,} frames at a time"
+        )
     print(f"synthesising {n} frames ({n / fps:.1f} s at {fps:g} Hz)...", flush=True)
     t0 = time.perf_counter()
+    if n > CHUNK_FRAMES:
+        return _synth_stream(args, tex, n, t0)
     if not args.clean:
         syn = synthesize(jax.random.key(args.seed), tex, n_frames=n)
         took = time.perf_counter() - t0
@@ -281,6 +294,51 @@ def _cmd_synth(args: argparse.Namespace) -> int:
             f"deepest foot below the training floor {100 * pen.max_depth:.1f} cm"
         )
     _write_outputs(syn, args.output, args.gif, f"mtex synth (seed {args.seed})")
+    return 0
+
+
+def _synth_stream(args: argparse.Namespace, tex, n: int, t0: float) -> int:
+    """``mtex synth`` of more than one piece: planned whole, then synthesised, decoded and
+    written a piece at a time (:func:`~mtex_jax.texture.synthesize_chunks`), with a progress
+    line on stderr per piece."""
+    import jax
+
+    from ..io import write_bvh_chunks
+    from ..texture import synthesize_chunks
+
+    stream = synthesize_chunks(
+        jax.random.key(args.seed), tex, n_frames=n, chunk_frames=CHUNK_FRAMES
+    )
+    fps = tex.feature_map.fps
+    print(
+        f"planned {stream.path.size:,} textons; synthesising and writing {stream.n_frames:,} "
+        f"frames in pieces of {stream.chunk_frames:,}",
+        flush=True,
+    )
+
+    def pieces():
+        for piece in stream:
+            assert piece.motion is not None
+            yield piece.motion
+            done = piece.start + piece.n_frames
+            took = time.perf_counter() - t0
+            print(
+                f"[mtex synth] {done:,} / {n:,} frames ({100 * done / n:.0f} %), {took:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    write_bvh_chunks(args.output, pieces(), n)
+    path, lens = stream.path, stream.lengths
+    show = lambda a: (
+        str(a.tolist()) if a.size <= 40 else f"{a[:20].tolist()} ... ({a.size:,} in all)"
+    )
+    print(
+        f"synthesised {n} frames from {tex.n_textons} textons in {time.perf_counter() - t0:.1f} s\n"
+        f"texton path {show(path)}\n"
+        f"lengths (frames) {show(lens)}\n"
+        f"wrote {args.output} ({n} frames, {n / fps:.2f} s at {fps:g} Hz)"
+    )
     return 0
 
 

@@ -78,6 +78,13 @@ from ._memory import (
     check_memory as check_memory,
     program_bytes as program_bytes,
 )
+from ._numbers import (
+    NUMBER as NUMBER,
+    json_value_line as json_value_line,
+    load_json as load_json,
+    number_problem as number_problem,
+    show_token as show_token,
+)
 
 __all__ = [
     "BUCKET_FRAMES",
@@ -100,6 +107,7 @@ __all__ = [
     "MAX_STATE_DIM",
     "MAX_TEXTONS",
     "MIN_FRAME_TIME",
+    "NUMBER",
     "CompileCount",
     "as_array",
     "atomic_write",
@@ -120,12 +128,16 @@ __all__ = [
     "describe_kind",
     "enable_compilation_cache",
     "file_kind",
+    "json_value_line",
     "limit",
     "load_arrays_json",
+    "load_json",
+    "number_problem",
     "pad_frames",
     "program_bytes",
     "read_input",
     "remove_stale_temporaries",
     "save_arrays_json",
     "set_limit",
+    "show_token",
 ]

@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from ._atomic import atomic_write
-from ._limits import MAX_MEMBER_BYTES, MAX_MODEL_BYTES, check_json_depth
+from ._limits import MAX_MEMBER_BYTES, MAX_MODEL_BYTES
+from ._numbers import load_json
 
 __all__ = ["load_arrays_json", "save_arrays_json"]
 
@@ -196,8 +197,8 @@ def _meta(p: Path, raw: np.ndarray, kind: str) -> dict[str, Any]:
     """The metadata of a model file; ``ValueError`` unless it is a JSON object of ``kind``."""
     try:
         text = raw.tobytes().decode("utf-8")
-        check_json_depth(text, "metadata")
-        meta = json.loads(text)
+        # the numbers' rule of every reader (a 401-digit integer, NaN: refused, naming where)
+        meta = load_json(text, "metadata", nonfinite=True)
     except (UnicodeDecodeError, ValueError) as e:
         raise ValueError(f"{p}: corrupt metadata: {e}") from None
     if not isinstance(meta, dict) or meta.get("kind") != kind:

@@ -8,6 +8,7 @@ from ._bvh import (
     quat_to_euler as quat_to_euler,
     read_bvh as read_bvh,
     write_bvh as write_bvh,
+    write_bvh_chunks as write_bvh_chunks,
 )
 from ._data import (
     example_names as example_names,
@@ -18,13 +19,6 @@ from ._deepmimic import (
     HUMANOID3D as HUMANOID3D,
     parse_deepmimic as parse_deepmimic,
     read_deepmimic as read_deepmimic,
-)
-
-# the number rule of the package's text readers (issue 57), for the readers of other
-# subpackages (tracking's keypoint and camera files); not in __all__: not public API
-from ._numbers import (
-    json_value_line as json_value_line,
-    load_json as load_json,
 )
 from ._readers import (
     read_motion as read_motion,
@@ -53,4 +47,5 @@ __all__ = [
     "salsa_names",
     "salsa_split",
     "write_bvh",
+    "write_bvh_chunks",
 ]

@@ -6,15 +6,24 @@ import itertools
 import os
 import re
 import warnings
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..core import MAX_ABS_VALUE, MAX_FRAMES, atomic_write, check_frame_time, read_input
+from ..core import (
+    MAX_ABS_VALUE,
+    MAX_FRAMES,
+    atomic_write,
+    check_count,
+    check_frame_time,
+    number_problem,
+    read_input,
+    show_token,
+)
 from ..motion import Motion, Skeleton
 from ._bvh_hierarchy import Tokens, parse_hierarchy
-from ._numbers import number_problem, show_token
 
 __all__ = ["euler_to_quat", "parse_bvh", "quat_to_euler", "read_bvh", "write_bvh"]
 
@@ -291,7 +300,37 @@ def write_bvh(path: str | os.PathLike[str], motion: Motion, *, precision: int = 
     ``precision`` decimals; offsets are written exactly. The file is replaced atomically (a
     failed write leaves the previous file intact).
     """
-    sk = motion.skeleton
+    write_bvh_chunks(path, [motion], motion.n_frames, precision=precision)
+
+
+def write_bvh_chunks(
+    path: str | os.PathLike[str],
+    motions: Iterable[Motion],
+    n_frames: int,
+    *,
+    precision: int = 6,
+) -> None:
+    """Write one motion given as consecutive pieces as one BVH file, a piece at a time.
+
+    As :func:`write_bvh` (which is this with one piece), for motions longer than memory holds
+    (``mtex synth`` of a million frames, :func:`~mtex_jax.texture.synthesize_chunks`): the
+    header is written from the first piece, then each piece's frames; only one piece is
+    held. Every piece must have the first one's skeleton and frame rate, and the pieces
+    together ``n_frames`` frames (the ``Frames:`` line comes first). The file is replaced
+    atomically: if a piece is refused or the pieces are too few or too many, nothing is
+    written.
+
+    Raises:
+        ValueError: a piece on another skeleton or frame rate, or not ``n_frames`` frames in
+            all.
+    """
+    n_frames = check_count(n_frames, "write_bvh: n_frames", "MAX_FRAMES")
+    pieces = iter(motions)
+    try:
+        first = next(pieces)
+    except StopIteration:
+        raise ValueError("write_bvh: no motion to write") from None
+    sk = first.skeleton
     order = _dfs_order(sk)
     children: dict[int, list[int]] = {i: [] for i in range(sk.n_joints)}
     for i, p in enumerate(sk.parents):
@@ -331,18 +370,31 @@ def write_bvh(path: str | os.PathLike[str], motion: Motion, *, precision: int = 
         stack.append(("close", ji, depth))
         stack.extend(("open", c, depth + 1) for c in reversed(children[ji]))
 
-    table = motion_to_channels(motion)
     # reorder columns to the depth-first joint order
     starts = np.cumsum([0] + [len(c) for c in sk.channels])
     cols = np.concatenate(
         [np.arange(starts[j], starts[j + 1]) for j in order] or [np.zeros(0, np.int64)]
     ).astype(np.int64)
-    table = table[:, cols]
     out.append("MOTION")
-    out.append(f"Frames: {motion.n_frames}")
-    out.append(f"Frame Time: {1.0 / motion.fps:.10g}")
-    row_fmt = " ".join([fmt] * table.shape[1])
-    body = "\n".join(row_fmt % tuple(r) for r in table) if table.shape[1] else ""
-    text = "\n".join(out) + "\n" + body + "\n"
+    out.append(f"Frames: {n_frames}")
+    out.append(f"Frame Time: {1.0 / first.fps:.10g}")
+    row_fmt = " ".join([fmt] * cols.size)
+    written = 0
     with atomic_write(path, "w", encoding="utf-8") as fh:
-        fh.write(text)
+        fh.write("\n".join(out) + "\n")
+        for m in itertools.chain([first], pieces):
+            if m is not first and (m.skeleton != sk or m.fps != first.fps):
+                raise ValueError(
+                    f"write_bvh: piece at frame {written} has another skeleton or frame rate "
+                    "than the first piece"
+                )
+            written += m.n_frames
+            if written > n_frames:
+                raise ValueError(f"write_bvh: the pieces have more than n_frames = {n_frames}")
+            if cols.size:
+                table = motion_to_channels(m)[:, cols]
+                fh.write("\n".join(row_fmt % tuple(r) for r in table) + "\n")
+        if written != n_frames:
+            raise ValueError(f"write_bvh: the pieces have {written} frames, not {n_frames}")
+        if not cols.size:  # no channels: the frame lines are empty (as they always were)
+            fh.write("\n")

@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from ..core import MAX_ABS_VALUE, MAX_DEPTH, MAX_JOINTS
+from ..core import MAX_ABS_VALUE, MAX_DEPTH, MAX_JOINTS, NUMBER, number_problem, show_token
 from ..motion import POSITION_CHANNELS, ROTATION_CHANNELS, Skeleton
-from ._numbers import NUMBER, number_problem, show_token
 
 __all__ = ["NUMBER", "Tokens", "parse_hierarchy"]
 
@@ -45,7 +44,7 @@ class Tokens:
         return line
 
     def number(self, what: str) -> float:
-        """The next token as a number (see :mod:`mtex_jax.io._numbers`: a strict decimal of
+        """The next token as a number (see :mod:`mtex_jax.core._numbers`: a strict decimal of
         a finite float, denormals read as they are), else an error naming the line."""
         tok, line = self.next(what)
         problem = number_problem(tok, f" for {what}")

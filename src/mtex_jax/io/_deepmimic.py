@@ -12,10 +12,10 @@ from ..core import (
     MAX_FRAME_TIME,
     MAX_FRAMES,
     check_frame_time,
+    load_json,
     read_input,
 )
 from ..motion import Motion, Skeleton, slerp
-from ._numbers import load_json
 
 __all__ = ["HUMANOID3D", "parse_deepmimic", "read_deepmimic"]
 

@@ -20,8 +20,8 @@ from typing import Any, overload
 
 import numpy as np
 
+from ..core import load_json
 from ..motion import Motion, Skeleton
-from ._numbers import load_json
 
 __all__ = ["load_salsa", "salsa_credit", "salsa_names", "salsa_split"]
 

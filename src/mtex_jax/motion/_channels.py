@@ -98,7 +98,7 @@ def decode_raw(
     up_axis: int,
     start_position: Float[Array, 3],
     start_heading: Float[Array, ""],
-) -> tuple[Array, Array, Array | None]:
+) -> tuple[Array, Array, Array | None, Array]:
     t = raw.shape[0]
     u, h0, h1 = ground_axes(up_axis)
     up = jnp.asarray(unit_axis(up_axis), dtype=raw.dtype)
@@ -121,4 +121,4 @@ def decode_raw(
         lp_raw = raw[:, 4 + 3 * n_joints :].reshape(t, n_joints - 1, 3)
         lp = jnp.concatenate([jnp.zeros((t, 1, 3), raw.dtype), lp_raw], axis=1)
         lp = lp.at[:, 0].set(pos)
-    return pos, rotations, lp
+    return pos, rotations, lp, psi

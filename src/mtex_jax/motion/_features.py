@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -220,21 +220,65 @@ class FeatureMap(eqx.Module):
         if Y.shape[0] < 1:
             raise ValueError("decode: Y has no frames")
         dtype = Y.dtype if jnp.issubdtype(Y.dtype, jnp.floating) else jnp.result_type(float)
-        sp = jnp.zeros(3, dtype) if start_position is None else jnp.asarray(start_position, dtype)
-        if sp.shape != (3,):
-            raise ValueError(f"decode: start_position must have shape (3,), got {sp.shape}")
-        sh = jnp.zeros((), dtype) if start_heading is None else jnp.asarray(start_heading, dtype)
-        if sh.shape != ():
-            raise ValueError(f"decode: start_heading must be a scalar, got shape {sh.shape}")
-        T = int(Y.shape[0])
+        sp, sh = _start(dtype, start_position, start_heading)
         try:  # a concrete Y is decoded in a shape bucket (design §11; the decoding is causal)
             Yn = np.asarray(Y, dtype=dtype)
         except jax.errors.TracerArrayConversionError:
-            pos, rot, lp = _decode(self, Y.astype(dtype), sp, sh)
+            pos, rot, lp, _ = _decode(self, Y.astype(dtype), sp, sh)
             return Motion(self.skeleton, self.fps, pos, rot, lp)
-        pos, rot, lp = _decode(self, pad_frames(Yn, bucket_length(T, DECODE_FRAMES)), sp, sh)
-        cut = lambda a: cut_frames(a, T)
-        return Motion(self.skeleton, self.fps, cut(pos), cut(rot), None if lp is None else cut(lp))
+        (pos, rot, lp), _ = _decode_host(self, Yn, sp, sh)
+        put = jax.device_put
+        return Motion(self.skeleton, self.fps, put(pos), put(rot), None if lp is None else put(lp))
+
+    def decode_chunks(
+        self,
+        chunks: Iterable[Float[ArrayLike, "t D"]],
+        start_position: Float[ArrayLike, 3] | None = None,
+        start_heading: float | None = None,
+    ) -> Iterator[Motion]:
+        """Decode one long sequence given as consecutive pieces: a :class:`Motion` per piece.
+
+        Each piece continues the last: its first frame's root displacement and yaw change are
+        applied to the previous piece's last root position and heading, carried exactly (the
+        heading as integrated, not measured again from a quaternion). The pieces together are
+        the motion :meth:`decode` gives for the whole sequence, up to the rounding of the
+        running sums, whose order differs; the memory is that of one piece. The first piece
+        is exactly :meth:`decode`'s. The arrays are NumPy (host) arrays. Long syntheses are
+        decoded and written this way (design §5.11).
+
+        Args:
+            chunks: ``(t_i, D)`` concrete observation arrays, in order.
+            start_position: ``(3,)`` root position of the first frame (as :meth:`decode`).
+            start_heading: yaw of the first frame (radians).
+
+        Yields:
+            a :class:`Motion` of ``t_i`` frames per piece.
+
+        Raises:
+            ValueError / TypeError: a piece of the wrong shape, or a traced one.
+        """
+        prev: np.ndarray | None = None
+        sp: Any = start_position
+        sh: Any = start_heading
+        for Yc in chunks:
+            if isinstance(Yc, Tracer):
+                raise TypeError("decode_chunks: the pieces must be concrete arrays")
+            Yn = np.asarray(Yc)
+            if Yn.ndim != 2 or Yn.shape[1] != self.dim or Yn.shape[0] < 1:
+                raise ValueError(
+                    f"decode_chunks: each piece must have shape (t, {self.dim}) with t >= 1, "
+                    f"got {Yn.shape}"
+                )
+            dtype = Yn.dtype if Yn.dtype.kind == "f" else np.dtype(jnp.result_type(float))
+            Yn = Yn.astype(dtype, copy=False)
+            # after the first piece, the previous piece's last frame anchors this one
+            rows = Yn if prev is None else np.concatenate([prev.astype(dtype), Yn])
+            (pos, rot, lp), psi = _decode_host(self, rows, *_start(dtype, sp, sh))
+            drop = rows.shape[0] - Yn.shape[0]
+            pos, rot = pos[drop:], rot[drop:]
+            lp = None if lp is None else lp[drop:]
+            sp, sh, prev = pos[-1], psi, Yn[-1:]
+            yield Motion(self.skeleton, self.fps, pos, rot, lp)
 
     def joint_positions(
         self,
@@ -403,6 +447,28 @@ def _scale(fm: FeatureMap, raw: Array | np.ndarray) -> Array:
     off = np.asarray(fm.offset, r.dtype)[act]
     sc = np.asarray(fm.scale, r.dtype)[act]
     return jax.device_put((r[:, act] - off) / sc)
+
+
+def _start(dtype: Any, start_position: Any, start_heading: Any) -> tuple[Array, Array]:
+    """The checked start position ``(3,)`` and heading ``()`` of a decoding, in ``dtype``."""
+    sp = jnp.zeros(3, dtype) if start_position is None else jnp.asarray(start_position, dtype)
+    if sp.shape != (3,):
+        raise ValueError(f"decode: start_position must have shape (3,), got {sp.shape}")
+    sh = jnp.zeros((), dtype) if start_heading is None else jnp.asarray(start_heading, dtype)
+    if sh.shape != ():
+        raise ValueError(f"decode: start_heading must be a scalar, got shape {sh.shape}")
+    return sp, sh
+
+
+def _decode_host(
+    fm: FeatureMap, Yn: np.ndarray, sp: Array, sh: Array
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray]:
+    """Decode a concrete ``Yn (T, D)`` in its shape bucket (design §11): the root positions,
+    rotations and local positions as host arrays, and the last frame's integrated heading."""
+    T = int(Yn.shape[0])
+    pos, rot, lp, psi = _decode(fm, pad_frames(Yn, bucket_length(T, DECODE_FRAMES)), sp, sh)
+    cut = lambda a: np.asarray(a)[:T]
+    return (cut(pos), cut(rot), None if lp is None else cut(lp)), np.asarray(psi)[T - 1]
 
 
 @eqx.filter_jit

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import equinox as eqx
 import numpy as np
@@ -19,6 +19,17 @@ ArrayF = Float[Array, "..."] | Float[np.ndarray, "..."]
 #: Quaternions whose norm is within this of 1 are normalised by :class:`Motion`; others are
 #: refused (a zero, NaN or inf quaternion always).
 QUAT_NORM_TOL = 1e-3
+
+
+#: Frames per block of the quaternion checks of a long clip (bounded temporaries).
+_BLOCK = 65_536
+
+
+def _norm_blocks(q: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+    """``(first frame, (t, J) float64 norms)`` of ``q (T, J, 4)`` in blocks of :data:`_BLOCK`
+    frames, so that a long clip's checks hold no float64 copy of it."""
+    for a in range(0, q.shape[0], _BLOCK):
+        yield a, np.linalg.norm(q[a : a + _BLOCK].astype(np.float64), axis=-1)
 
 
 class Motion(eqx.Module):
@@ -60,40 +71,50 @@ class Motion(eqx.Module):
                 if arr.dtype.kind in "biuf":
                     setattr(self, name, arr.astype(np.float64))
         # normalise near-unit quaternions (the rest is checked by __check_init__)
-        q, n = self._quaternion_norms()
-        if q is None or n is None or not np.isfinite(n).all():
+        q = self._concrete_quaternions()
+        if q is None:
             return
-        dev = np.abs(n - 1.0)
-        if dev.max() <= QUAT_NORM_TOL and dev.max() > 8 * np.finfo(q.dtype).eps:
-            unit = (q / n[..., None]).astype(q.dtype)
+        # the largest deviation from a unit norm, in blocks of frames (bounded temporaries)
+        worst = 0.0
+        for _, n in _norm_blocks(q):
+            if not np.isfinite(n).all():
+                return
+            worst = max(worst, float(np.abs(n - 1.0).max()))
+        if worst <= QUAT_NORM_TOL and worst > 8 * np.finfo(q.dtype).eps:
+            unit = np.empty_like(q)
+            for a, n in _norm_blocks(q):
+                unit[a : a + n.shape[0]] = (q[a : a + n.shape[0]] / n[..., None]).astype(q.dtype)
             rot = self.rotations
             self.rotations = unit if isinstance(rot, np.ndarray) else _type_like(rot, unit)
 
-    def _quaternion_norms(self) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """The concrete rotations and their norms, or ``None`` (traced, empty or misshapen)."""
+    def _concrete_quaternions(self) -> np.ndarray | None:
+        """The concrete rotations, or ``None`` (traced, empty or misshapen)."""
         rot = self.rotations
         if isinstance(rot, Tracer) or len(np.shape(rot)) != 3 or np.shape(rot)[2] != 4:
-            return None, None
+            return None
         q = np.asarray(rot)
         if not np.issubdtype(q.dtype, np.floating) or q.size == 0:
-            return None, None
-        return q, np.linalg.norm(q.astype(np.float64), axis=-1)
+            return None
+        return q
 
     def _check_quaternions(self) -> None:
         """The value check at the door: finite unit quaternions (traced arrays skipped)."""
-        q, n = self._quaternion_norms()
-        if q is None or n is None:
+        q = self._concrete_quaternions()
+        if q is None:
             return
-        bad = ~np.isfinite(n) | (n < 1e-6) | (np.abs(n - 1.0) > QUAT_NORM_TOL)
-        if not bad.any():
-            return
-        t, j = (int(i[0]) for i in np.nonzero(bad))
-        if not np.isfinite(n[t, j]):
+        for a, n in _norm_blocks(q):
+            bad = ~np.isfinite(n) | (n < 1e-6) | (np.abs(n - 1.0) > QUAT_NORM_TOL)
+            if bad.any():
+                t, j = (int(i[0]) for i in np.nonzero(bad))
+                self._bad_quaternion(q, n, a + t, j, t)
+
+    def _bad_quaternion(self, q: np.ndarray, n: np.ndarray, t: int, j: int, tb: int) -> None:
+        if not np.isfinite(n[tb, j]):
             what = "NaN or inf"
-        elif n[t, j] < 1e-6:
+        elif n[tb, j] < 1e-6:
             what = "zero"
         else:
-            what = f"norm {n[t, j]:.6g}, not a unit"
+            what = f"norm {n[tb, j]:.6g}, not a unit"
         raise ValueError(
             f"Motion.rotations: frame {t}, joint {j} ({self.skeleton.names[j]!r}): {what} "
             f"quaternion {q[t, j].tolist()} (norms within {QUAT_NORM_TOL:g} of 1 are normalised)"

@@ -89,8 +89,12 @@ from ._synthesis.paths import (
     shortest_path as shortest_path,
 )
 from ._synthesis.sequence import (
+    CHUNK_FRAMES as CHUNK_FRAMES,
     Synthesis as Synthesis,
+    SynthesisChunk as SynthesisChunk,
+    SynthesisStream as SynthesisStream,
     synthesize as synthesize,
+    synthesize_chunks as synthesize_chunks,
 )
 from ._synthesis.texton_synthesis import (
     synthesize_texton as synthesize_texton,
@@ -136,6 +140,7 @@ from ._vocabulary import (
 )
 
 __all__ = [
+    "CHUNK_FRAMES",
     "DEFAULT_TRANSITION",
     "MAX_SELF_REPEATS",
     "OBSERVATION_MODELS",
@@ -156,6 +161,8 @@ __all__ = [
     "Segmentation",
     "Subspace",
     "Synthesis",
+    "SynthesisChunk",
+    "SynthesisStream",
     "Texton",
     "TiedObservation",
     "Vocabulary",
@@ -205,6 +212,7 @@ __all__ = [
     "stack_textons",
     "subspace_from_stats",
     "synthesize",
+    "synthesize_chunks",
     "synthesize_texton",
     "texton_from_stats",
     "texture_summary",

@@ -29,10 +29,11 @@ from ..core import (
     check_size,
     describe_kind,
     file_kind,
+    json_value_line,
     limit,
+    load_json,
     read_input,
 )
-from ..io import json_value_line, load_json
 from ..motion import Skeleton, ground_axes
 from ._camera import Camera
 from ._problem import TrackingProblem

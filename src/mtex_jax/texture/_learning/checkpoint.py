@@ -10,12 +10,16 @@ and EM on the selected textons (``"final"``). After every EM iteration the check
   the number of textons to drop next);
 - the running EM's :class:`~.loop.EMState`;
 - the runner's padded sizes (a compile cache; kept so that a resumed run pads as the
-  uninterrupted one did).
+  uninterrupted one did), one set per process of a distributed learn.
 
 Work between two iterations (the greedy initialisation, a selection round's E-step) is done
 again on resume: it is deterministic. The file is the model file's format (``.npz`` arrays and
 JSON metadata, written atomically, never a pickle) and carries a digest of the clips and the
 configuration: a checkpoint of other data or another configuration is refused.
+
+A distributed learn (:func:`~.distributed.learn_distributed`) holds the same EM state on every
+process: process 0 reads and writes the file, sends what it read to the others, and gathers
+their padded sizes at every save (the :class:`Peers` of the job).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import dataclasses
 import hashlib
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,10 +40,10 @@ from .._model import MotionTexture, texton_arrays, texton_of_arrays, texture_of_
 from .._texton.texton import Texton
 from .loop import EMState, Fit
 
-__all__ = ["CHECKPOINT_KIND", "Checkpoint", "SelectionState", "learn_digest"]
+__all__ = ["CHECKPOINT_KIND", "Checkpoint", "Peers", "SelectionState", "learn_digest"]
 
 CHECKPOINT_KIND = "mtex_jax.LearnCheckpoint"
-_VERSION = 1
+_VERSION = 2  # 2: the padded sizes of every process
 STAGES = ("em", "selection", "final")
 
 
@@ -139,6 +144,39 @@ def _state_of(arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> EMState:
     )
 
 
+_META = "__checkpoint_meta__"
+
+
+class Peers:
+    """The processes a checkpoint is shared by: this process alone (the default), or the
+    processes of a distributed learn (:func:`~.distributed.learn_distributed` passes its
+    collectives).
+
+    Attributes:
+        index: this process's index (``0`` alone).
+        count: the processes.
+        writes: this process writes the file (process 0).
+    """
+
+    def __init__(
+        self,
+        index: int = 0,
+        count: int = 1,
+        share: Callable[[Callable[[], dict[str, np.ndarray]]], dict[str, np.ndarray]] | None = None,
+        gather: Callable[[Any], list[Any]] | None = None,
+    ) -> None:
+        self.index, self.count, self.writes = index, count, index == 0
+        self._share, self._gather = share, gather
+
+    def share(self, fn: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        """``fn()`` run by process 0, its result (or its error) on every process."""
+        return fn() if self._share is None else self._share(fn)
+
+    def gather(self, obj: Any) -> list[Any]:
+        """Every process's JSON-serialisable ``obj``, in process order."""
+        return [obj] if self._gather is None else self._gather(obj)
+
+
 class Checkpoint:
     """The checkpoint file of one learn: read on resume, written after every EM iteration.
 
@@ -148,46 +186,68 @@ class Checkpoint:
     """
 
     def __init__(
-        self, path: str | os.PathLike[str], digest: str, resume: bool, runner: Any
+        self,
+        path: str | os.PathLike[str],
+        digest: str,
+        resume: bool,
+        runner: Any,
+        peers: Peers | None = None,
     ) -> None:
         """Open the checkpoint ``path`` of a learn of ``digest`` (:func:`learn_digest`) whose
-        steps ``runner`` runs (its padded sizes are saved and restored with the EM state).
+        steps ``runner`` runs (its padded sizes are saved and restored with the EM state);
+        ``peers``: the processes of a distributed learn (``None``: this process alone).
 
         Raises:
             ValueError: ``resume`` is false and ``path`` exists (a checkpoint would be
                 overwritten: pass ``resume=True`` or remove it); ``resume`` is true and the
                 file is not a learn checkpoint, or one of other clips or another configuration.
+                In a distributed learn, on every process (process 0 looked).
         """
         self.path = Path(path)
         self.digest = digest
         self.runner = runner
+        self.peers = Peers() if peers is None else peers
         self._round_caps: dict[str, int] = {}
         self._saved: tuple[dict[str, np.ndarray], dict[str, Any]] | None = None
         self.stage = "em"  # where the learn is now
         self.round = -1  # the selection round whose refit runs (stage "selection")
         self._selection: SelectionState | None = None
         self.resumed = False
+        got = self.peers.share(lambda: self._read(resume))
+        if got:
+            meta = json.loads(got.pop(_META).tobytes().decode("utf-8"))
+            self._saved = (got, meta)
+            self.resumed = True
+
+    def _read(self, resume: bool) -> dict[str, np.ndarray]:
+        """The saved arrays and the metadata (as JSON bytes under ``_META``), or ``{}``."""
         if self.path.exists() and not resume:
             raise ValueError(
                 f"checkpoint {self.path} exists: resume from it (resume=True, mtex learn "
                 "--resume) or remove it"
             )
-        if resume and self.path.exists():
-            arrays, meta = load_arrays_json(self.path, kind=CHECKPOINT_KIND)
-            if meta.get("format_version") != _VERSION:
-                raise ValueError(
-                    f"{self.path}: checkpoint format {meta.get('format_version')!r} is not "
-                    f"supported (this mtex_jax reads version {_VERSION})"
-                )
-            if meta.get("digest") != digest:
-                raise ValueError(
-                    f"{self.path}: this checkpoint is of other clips or another configuration "
-                    "than this learn; it cannot be resumed (remove it to start again)"
-                )
-            if meta.get("stage") not in STAGES:
-                raise ValueError(f"{self.path}: unknown stage {meta.get('stage')!r}")
-            self._saved = (arrays, meta)
-            self.resumed = True
+        if not (resume and self.path.exists()):
+            return {}
+        arrays, meta = load_arrays_json(self.path, kind=CHECKPOINT_KIND)
+        if meta.get("format_version") != _VERSION:
+            raise ValueError(
+                f"{self.path}: checkpoint format {meta.get('format_version')!r} is not "
+                f"supported (this mtex_jax reads version {_VERSION})"
+            )
+        if meta.get("digest") != self.digest:
+            raise ValueError(
+                f"{self.path}: this checkpoint is of other clips or another configuration "
+                "than this learn; it cannot be resumed (remove it to start again)"
+            )
+        if meta.get("stage") not in STAGES:
+            raise ValueError(f"{self.path}: unknown stage {meta.get('stage')!r}")
+        n = len(meta.get("caps") or [])
+        if n != self.peers.count:
+            raise ValueError(
+                f"{self.path}: this checkpoint is of a learn of {n} process(es), this one has "
+                f"{self.peers.count}"
+            )
+        return {**arrays, _META: np.frombuffer(json.dumps(meta).encode("utf-8"), np.uint8)}
 
     # ------------------------------------------------------------------ reading
     def saved_stage(self) -> str | None:
@@ -224,7 +284,7 @@ class Checkpoint:
         self.stage, self.round = stage, round
         if self._at(stage, round):
             assert self._saved is not None
-            self.runner.set_caps(self._saved[1]["round_caps"])
+            self.runner.set_caps(self._saved[1]["round_caps"][self.peers.index])
         self._round_caps = self.runner.caps()
 
     def enter(self) -> EMState | None:
@@ -236,7 +296,7 @@ class Checkpoint:
         assert self._saved is not None
         arrays, meta = self._saved
         state = _state_of(arrays, meta["em"])
-        self.runner.set_caps(meta["caps"])
+        self.runner.set_caps(meta["caps"][self.peers.index])
         self._saved = None  # consumed: from here on the learn runs on
         return state
 
@@ -246,7 +306,11 @@ class Checkpoint:
         self._selection = sel
 
     def save(self, state: EMState) -> None:
-        """Write the checkpoint after an EM iteration, atomically."""
+        """Write the checkpoint after an EM iteration, atomically (process 0 of a distributed
+        learn, with every process's padded sizes)."""
+        caps = self.peers.gather({"caps": self.runner.caps(), "round_caps": self._round_caps})
+        if not self.peers.writes:
+            return
         arrays, em_meta = _state_arrays(state)
         meta: dict[str, Any] = {
             "kind": CHECKPOINT_KIND,
@@ -254,8 +318,8 @@ class Checkpoint:
             "digest": self.digest,
             "stage": self.stage,
             "round": self.round,
-            "caps": self.runner.caps(),
-            "round_caps": self._round_caps,
+            "caps": [c["caps"] for c in caps],
+            "round_caps": [c["round_caps"] for c in caps],
             "em": em_meta,
             "selection": None,
         }

@@ -24,6 +24,7 @@ import dataclasses
 import functools
 import io
 import json
+import os
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -38,6 +39,7 @@ from .._config import LearnConfig
 from .._model import MotionTexture
 from .._segmentation.segment import check_lengths
 from .._texton.texton import Texton
+from .checkpoint import Checkpoint, Peers, learn_digest
 from .contacts import with_contacts
 from .em import NO_PADDING, Capacity, Runner, warm_start
 from .init import Segs, greedy_init
@@ -357,16 +359,18 @@ def _initial_segments(
 
 
 def _prepare(
-    data: Any, config: LearnConfig, verbose: bool
-) -> tuple[_DistRunner, FeatureMap | None, LearnConfig, dict[str, np.ndarray]]:
+    data: Any, config: LearnConfig, verbose: bool, digest: bool = False
+) -> tuple[_DistRunner, FeatureMap | None, LearnConfig, dict[str, np.ndarray], str]:
     """The exchange of the clips, the checks, the feature map, the state dimension and the
     initial segments (from process 0) as :func:`learn` does them on the union; the runner
-    keeps this process's clips only."""
+    keeps this process's clips only. With ``digest``, the checkpoint digest of the union
+    (:func:`~.checkpoint.learn_digest`, the same on every process), else ``""``."""
     clips, counts = _exchange_clips(data, config)
     # the motions arrive resampled: the checks must not resample them again
     ys, fm, _ = check_data(clips, dataclasses.replace(config, fps=None))
     T = max(y.shape[0] for y in ys)
     check_lengths(config.tmin, config.tmax, T)
+    dig = learn_digest(ys, config) if digest else ""
     config = resolve_state_dim(ys, config, verbose)
     t0 = time.perf_counter()
     init = _from_root(lambda: _initial_segments(ys, config, verbose, t0))
@@ -374,7 +378,17 @@ def _prepare(
     offset = sum(counts[:me])
     n_frames = sum(y.shape[0] for y in ys)
     run = _DistRunner(ys[offset : offset + counts[me]], config, counts, T, n_frames)
-    return run, fm, config, init
+    return run, fm, config, init, dig
+
+
+def _peers() -> Peers:
+    """The processes of the job, for a checkpoint: process 0 reads and writes it."""
+
+    def gather(obj: Any) -> list[Any]:
+        parts = _allgather_bytes(json.dumps(obj).encode("utf-8"))
+        return [json.loads(p.decode("utf-8")) for p in parts]
+
+    return Peers(jax.process_index(), jax.process_count(), _from_root, gather)
 
 
 def learn_distributed(
@@ -383,6 +397,8 @@ def learn_distributed(
     *,
     verbose: bool = False,
     callback: Callable[[dict[str, Any]], None] | None = None,
+    checkpoint: str | os.PathLike[str] | None = None,
+    resume: bool = False,
 ) -> MotionTexture:
     """Learn a motion texture with the clips spread over the processes of a JAX job.
 
@@ -430,6 +446,13 @@ def learn_distributed(
         config: :class:`LearnConfig`, the same on every process.
         verbose: print progress (on process 0 only).
         callback: called on every process after every EM iteration, as in :func:`learn`.
+        checkpoint: as in :func:`learn`, the same path on every process: process 0 writes
+            it after every EM iteration (with every process's padded sizes) and, with
+            ``resume``, reads it and sends it to the others (design §4.9), so the file need
+            be on process 0's disk only. A resumed distributed learn equals an uninterrupted
+            one bit for bit; the checkpoint is refused if the job has another number of
+            processes.
+        resume: continue from ``checkpoint`` if it exists on process 0.
 
     Returns:
         The :class:`MotionTexture`, the same on every process.
@@ -443,7 +466,19 @@ def learn_distributed(
     """
     config = LearnConfig() if config is None else config
     root = jax.process_index() == 0
-    run, fm, config, init = _prepare(data, config, verbose and root)
+    if checkpoint is not None and (
+        config.threshold is None and config.n_textons is None and config.bic_thresholds
+    ):
+        raise ValueError(
+            "checkpoint: a learn that tries every threshold of bic_thresholds is not "
+            "checkpointed; give threshold or n_textons"
+        )
+    run, fm, config, init, digest = _prepare(data, config, verbose and root, checkpoint is not None)
+    ck = None
+    if checkpoint is not None:
+        ck = Checkpoint(checkpoint, digest, resume, run, _peers())
+        if ck.resumed and verbose and root:
+            print(f"[mtex learn] resuming from {checkpoint} ({ck.saved_stage()})", flush=True)
     settings = EMSettings(fm, verbose and root, callback)
     if "threshold" not in init:  # bic_thresholds: initialisation + EM for each, lowest BIC
         thresholds = config.bic_thresholds or ()
@@ -452,7 +487,7 @@ def learn_distributed(
         model = models[int(np.argmin([r["bic"] for r in table]))]
     else:
         threshold = float(init["threshold"][0])
-        model = em_and_selection(run, config, threshold, init["segs0"], settings)
+        model = em_and_selection(run, config, threshold, init["segs0"], settings, ck)
     model = _with_innovations(model, run)
     if jax.process_count() == 1:  # equals learn: the clips' contact model (design §6.6)
         clips = [data] if isinstance(data, Motion) else list(data)

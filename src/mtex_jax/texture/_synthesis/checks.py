@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from ...core import MAX_GENERATED_FRAMES, check_count, check_size
+from ...core import check_count, check_size
 from .._model import MotionTexture
 
 __all__ = [
@@ -54,7 +54,7 @@ def check_options(weighting: Any, residual: Any, replay: Any = "aligned") -> Non
 def check_n_frames(n_frames: Any) -> int:
     if isinstance(n_frames, bool) or not isinstance(n_frames, int | np.integer):
         raise TypeError(f"n_frames must be an int, got {n_frames!r}")
-    return check_count(n_frames, "n_frames", MAX_GENERATED_FRAMES, low=4)
+    return check_count(n_frames, "n_frames", "MAX_GENERATED_FRAMES", low=4)
 
 
 def check_pair(name: str, pose: Any, D: int) -> np.ndarray:

@@ -22,7 +22,7 @@ from .checks import (
 )
 from .keyposes import key_pose_instances
 from .paths import path_of_length, shortest_path
-from .sequence import Residual, Synthesis, finish, synthesize_path
+from .sequence import PathPlan, Residual, Synthesis, finish, synthesize_path
 from .texton_synthesis import Weighting
 
 
@@ -126,19 +126,8 @@ def choreograph(
         lens = scale_lengths(lens.astype(np.float64), int(n_frames), mins)
     else:
         lens = np.maximum(lens, mins)
-    Y = synthesize_path(
-        texture,
-        k_noise,
-        body,
-        lens,
-        seg_idx,
-        s_np,
-        e_np,
-        True,
-        weighting,
-        residual,
-        decay=decay,
-    )
+    plan = PathPlan(body, lens.astype(np.int64), seg_idx, s_np, e_np, True)
+    Y = synthesize_path(texture, k_noise, plan, weighting, residual, decay=decay)
     seg_out = seg_idx.copy()
     seg_out[0] = -1
-    return finish(texture, Y, body, lens, seg_out, start_position, start_heading, decode)
+    return finish(texture, Y, plan, seg_out, start_position, start_heading, decode)

@@ -41,10 +41,19 @@ durations and the decoding are padded the same way. So syntheses of any such len
 set of compiled programs, and the padding changes no result: the rows past a texton's end pair
 are held, the draws are prefix-stable, the decoding is causal. (A texture without a residual
 bank draws its innovations at the shapes they had before, to keep their values.)
+
+*Long syntheses* (design §5.11). The path is planned whole (:class:`PathPlan`), then
+synthesised in blocks of :func:`block_rows` textons, the rows of one size class, so that the
+working memory does not grow with the path (:func:`path_blocks`; block 0 draws with the noise
+key as before, block ``b`` with a key of its own); the observations are decoded in pieces of
+:data:`CHUNK_FRAMES` frames, each continuing the last. :func:`synthesize_chunks` yields those
+pieces instead of keeping them.
 """
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Iterator
 from typing import Any, Literal
 
 import equinox as eqx
@@ -55,6 +64,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ...core import (
+    check_count,
     check_key,
     check_size,
 )
@@ -81,6 +91,10 @@ _PAD_FRAMES = 64  # and the per-texton length to a multiple of this
 # a synthesis of up to this many frames is one size class: its path, walk and decoding are
 # padded as for this many frames (one set of programs; the padded textons skip their solve)
 _CLASS_FRAMES = 4096
+#: Frames per decoded piece of a long synthesis: a synthesis of up to this many frames is
+#: decoded whole and held in JAX arrays, a longer one in pieces into host arrays
+#: (:func:`synthesize_chunks` yields such pieces).
+CHUNK_FRAMES = 16_384
 
 
 def path_capacity(texture: MotionTexture, n: int) -> int:
@@ -208,111 +222,222 @@ def path_core(
 _path_core_jit = eqx.filter_jit(path_core)
 
 
-def synthesize_path(
+class PathPlan(eqx.Module):
+    """A planned path, before its frames are synthesised (host arrays; see the module notes).
+
+    Attributes:
+        path: ``(n,)`` texton labels.
+        lengths: ``(n,)`` frames each texton contributes.
+        seg_idx: ``(n,)`` key-pose instances (rows of ``texture.segments``).
+        start: ``(2, D)`` given first two frames, or ``None`` (the first instance's key poses).
+        end: ``(2, D)`` the poses the last texton is held at.
+        end_in_output: the last texton holds ``end`` in its own last two frames (the
+            choreographer) instead of two dropped frames past its end.
+    """
+
+    path: np.ndarray
+    lengths: np.ndarray
+    seg_idx: np.ndarray
+    start: np.ndarray | None
+    end: np.ndarray
+    end_in_output: bool = eqx.field(static=True)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.lengths.sum())
+
+
+def block_rows(texture: MotionTexture) -> int:
+    """Textons per block of a path's synthesis: the padded path rows of a synthesis of
+    ``_CLASS_FRAMES`` frames, so that every synthesis of that size is one block (as it
+    always was) and a longer one is a sequence of such blocks (module notes)."""
+    return path_capacity(texture, 1)
+
+
+def path_blocks(
     texture: MotionTexture,
     key: Array | None,
-    path: np.ndarray,
-    lengths: np.ndarray,
-    seg_idx: np.ndarray,
-    start: np.ndarray | None,
-    end: np.ndarray,
-    end_in_output: bool,
+    plan: PathPlan,
     weighting: str,
     residual: str,
     replay: str = "aligned",
     decay: float | None = None,
-) -> Array:
-    """Observations ``(Σ lengths, D)`` of a planned path (see the module docstring).
+) -> Iterator[np.ndarray]:
+    """The observations of a planned path, block by block: ``(frames of the block's
+    textons, D)`` host arrays, in order (module notes, *long syntheses*).
 
-    ``seg_idx`` are the key-pose instances (rows of ``texture.segments``); with
-    ``replay="aligned"`` each texton replays the residuals of its own instance (not the
-    first one's when ``start`` replaces its key poses). ``decay``: ``1 / τ`` in frames of
-    the bend towards the end poses (:func:`~.checks.transition_decay`), or ``None``.
+    A block holds :func:`block_rows` textons; its working memory is that of one synthesis of
+    ``_CLASS_FRAMES`` frames, whatever the path's length. Block ``0`` draws its innovations
+    with ``key`` (so a synthesis of one block keeps the draws it always had), block ``b ≥ 1``
+    with ``fold_in(fold_in(key, 2), b)``: a block's draws depend on the path and the key, not
+    on how many blocks are synthesised at a time. With ``replay="aligned"`` each texton
+    replays the residuals of its own instance (not the first one's when ``start`` replaces
+    its key poses). ``decay``: ``1 / τ`` in frames of the bend towards the end poses
+    (:func:`~.checks.transition_decay`), or ``None``.
     """
+    path, lengths, seg_idx = plan.path, plan.lengths, plan.seg_idx
     n = path.size
     tex = texture.textons
     dt = tex.mu.dtype
     D, k = texture.obs_dim, int(tex.C.shape[-1])
-    key_poses = np.asarray(texture.key_poses)[seg_idx]  # (n, 2, D)
-    starts = key_poses.copy()
-    if start is not None:
-        starts[0] = start
-    ends = np.zeros_like(starts)
-    ends[:-1] = starts[1:]
-    ends[-1] = end
+    key_poses = np.asarray(texture.key_poses)
     # texton m is held at the next key poses in rows l_m, l_m + 1 (dropped from the output);
     # the last one at ``end`` there too, or in its own last two rows (``end_in_output``)
     end_at = lengths.copy()
-    if end_in_output:
+    if plan.end_in_output:
         end_at[-1] -= 2
-    n_pad = path_capacity(texture, n)
     longest = int(end_at.max()) + 2
     if texture.config.tmax is not None:  # every drawn length fits one bucket
         longest = max(longest, int(texture.config.tmax) + 2)
     l_pad = round_up(longest, _PAD_FRAMES)
-    pad = n_pad - n
-    lab_p = np.concatenate([path, np.zeros(pad, np.int64)]).astype(np.int32)
-    st_p = np.concatenate([starts, np.repeat(starts[:1], pad, 0)])
-    en_p = np.concatenate([ends, np.zeros((pad, 2, D))])
-    at_p = np.concatenate([end_at, np.full(pad, l_pad - 2)]).astype(np.int32)
-    if key is None:
-        v = jnp.zeros((n_pad, l_pad - 2, k), dt)
-    else:
-        inst = None
-        if texture.residuals is not None and replay == "aligned":
-            inst = np.concatenate([seg_idx, np.full(pad, -1)]).astype(np.int32)
-            if start is not None:  # the given start is not the instance's state
-                inst[0] = -1
-        dof = None if tex.dof is None else float(tex.dof)
-        v = path_innovations(
-            key, texture, lab_p, inst, n, (n_pad, l_pad - 2, k), int(end_at.max()), dt, dof
-        )
+    first = key_poses[seg_idx[0]] if plan.start is None else plan.start
+    inst_all = None
+    if key is not None and texture.residuals is not None and replay == "aligned":
+        inst_all = seg_idx.astype(np.int32)
+        if plan.start is not None:  # the given start is not the instance's state
+            inst_all = inst_all.copy()
+            inst_all[0] = -1
+    dof = None if tex.dof is None else float(tex.dof)
+    P = block_rows(texture)
     put = jax.device_put  # jnp.asarray of a host array compiles a copy per shape
-    out = _path_core_jit(
-        tex,
-        put(lab_p),
-        put(np.asarray(st_p, dt)),
-        put(np.asarray(en_p, dt)),
-        put(at_p),
-        v,
-        weighting,
-        residual == "blend",
-        jax.device_put(np.asarray(n, np.int32)),
-        None if decay is None else jax.device_put(np.asarray(decay, dt)),
-    )
-    rows = np.repeat(np.arange(n), lengths)
-    cols = np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
-    Y = np.asarray(out)[rows, cols]  # on the host: no program per length
-    if not np.isfinite(Y).all():
-        bad = sorted({int(path[r]) for r in rows[~np.isfinite(Y).all(axis=1)]})
-        raise ValueError(
-            f"synthesize: the constrained solve of texton(s) {bad} failed (normal matrix not "
-            "positive definite or non-finite states: non-finite or singular texton parameters?)"
+    for b, a in enumerate(range(0, n, P)):
+        e = min(n, a + P)
+        nb = e - a
+        lab_p = np.zeros(P, np.int32)
+        lab_p[:nb] = path[a:e]
+        st_p = np.repeat(np.asarray(first)[None], P, 0)
+        st_p[:nb] = key_poses[seg_idx[a:e]]
+        if a == 0:
+            st_p[0] = first
+        # each texton ends at the next one's key poses; the last one at ``plan.end``
+        en_p = np.zeros((P, 2, D), st_p.dtype)
+        nxt = seg_idx[a + 1 : min(e + 1, n)]
+        en_p[: nxt.size] = key_poses[nxt]
+        if e == n:
+            en_p[nb - 1] = plan.end
+        at_p = np.full(P, l_pad - 2, np.int32)
+        at_p[:nb] = end_at[a:e]
+        if key is None:
+            v = jnp.zeros((P, l_pad - 2, k), dt)
+        else:
+            kb = key if b == 0 else jax.random.fold_in(jax.random.fold_in(key, 2), b)
+            inst = None
+            if inst_all is not None:
+                inst = np.full(P, -1, np.int32)
+                inst[:nb] = inst_all[a:e]
+            v = path_innovations(
+                kb, texture, lab_p, inst, nb, (P, l_pad - 2, k), int(end_at.max()), dt, dof
+            )
+        out = _path_core_jit(
+            tex,
+            put(lab_p),
+            put(np.asarray(st_p, dt)),
+            put(np.asarray(en_p, dt)),
+            put(at_p),
+            v,
+            weighting,
+            residual == "blend",
+            jax.device_put(np.asarray(nb, np.int32)),
+            None if decay is None else jax.device_put(np.asarray(decay, dt)),
         )
-    return jax.device_put(Y)
+        lens = lengths[a:e]
+        rows = np.repeat(np.arange(nb), lens)
+        cols = np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
+        Y = np.asarray(out)[rows, cols]  # on the host: no program per length
+        if not np.isfinite(Y).all():
+            bad = sorted({int(path[a + r]) for r in rows[~np.isfinite(Y).all(axis=1)]})
+            raise ValueError(
+                f"synthesize: the constrained solve of texton(s) {bad} failed (normal matrix "
+                "not positive definite or non-finite states: non-finite or singular texton "
+                "parameters?)"
+            )
+        yield Y
+
+
+def frame_chunks(blocks: Iterator[np.ndarray], chunk_frames: int) -> Iterator[np.ndarray]:
+    """The rows of ``blocks`` cut again into pieces of ``chunk_frames`` (the last shorter)."""
+    held: list[np.ndarray] = []
+    size = 0
+    for Y in blocks:
+        held.append(Y)
+        size += Y.shape[0]
+        while size >= chunk_frames:
+            rows = np.concatenate(held) if len(held) > 1 else held[0]
+            yield rows[:chunk_frames]
+            held, size = [rows[chunk_frames:]], size - chunk_frames
+    if size:
+        yield np.concatenate(held) if len(held) > 1 else held[0]
+
+
+def synthesize_path(
+    texture: MotionTexture,
+    key: Array | None,
+    plan: PathPlan,
+    weighting: str,
+    residual: str,
+    replay: str = "aligned",
+    decay: float | None = None,
+) -> np.ndarray:
+    """Observations ``(Σ lengths, D)`` of a planned path, as one host array filled block by
+    block (:func:`path_blocks`)."""
+    dt = np.dtype(texture.textons.mu.dtype)
+    Y = np.empty((plan.n_frames, texture.obs_dim), dt)
+    at = 0
+    for rows in path_blocks(texture, key, plan, weighting, residual, replay, decay):
+        Y[at : at + rows.shape[0]] = rows
+        at += rows.shape[0]
+    return Y
 
 
 def finish(
     texture: MotionTexture,
-    Y: Array,
-    path: np.ndarray,
-    lengths: np.ndarray,
-    seg_idx: np.ndarray,
+    Y: np.ndarray,
+    plan: PathPlan,
+    seg_out: np.ndarray,
     start_position: Any,
     start_heading: Any,
     decode: bool,
 ) -> Synthesis:
+    """The :class:`Synthesis` of a planned path's observations ``Y``: decoded in pieces of
+    :data:`CHUNK_FRAMES` (:meth:`~mtex_jax.motion.FeatureMap.decode_chunks`). A synthesis of
+    one piece is held in JAX arrays, as it always was; a longer one in host NumPy arrays, so
+    that no second copy is made (module notes, *long syntheses*)."""
+    T = int(Y.shape[0])
+    whole = T <= CHUNK_FRAMES
+    fm = texture.feature_map
     motion = None
-    if decode and texture.feature_map is not None:
-        motion = texture.feature_map.decode(Y, start_position, start_heading)
+    if decode and fm is not None:
+        if whole:
+            motion = fm.decode(Y, start_position, start_heading)
+        else:
+            pieces = (Y[a : a + CHUNK_FRAMES] for a in range(0, T, CHUNK_FRAMES))
+            motion = _collect(fm.decode_chunks(pieces, start_position, start_heading), T)
+    lengths = plan.lengths
     return Synthesis(
-        Y=Y,
-        path=jax.device_put(np.asarray(path)),
+        Y=jax.device_put(Y) if whole else Y,  # type: ignore[arg-type]  # host when long
+        path=jax.device_put(np.asarray(plan.path)),
         lengths=jax.device_put(np.asarray(lengths)),
         starts=jax.device_put(np.cumsum(lengths) - lengths),
-        key_segments=jax.device_put(np.asarray(seg_idx)),
+        key_segments=jax.device_put(np.asarray(seg_out)),
         motion=motion,
     )
+
+
+def _collect(motions: Iterator[Motion], T: int) -> Motion:
+    """One :class:`Motion` of ``T`` frames from consecutive pieces, filled in place."""
+    first = next(motions)
+    arrays = [first.root_positions, first.rotations, first.local_positions]
+    out = [None if a is None else np.empty((T, *a.shape[1:]), a.dtype) for a in arrays]
+    at = 0
+    for m in itertools.chain([first], motions):
+        t = m.n_frames
+        for o, a in zip(out, (m.root_positions, m.rotations, m.local_positions), strict=True):
+            if o is not None:
+                o[at : at + t] = a
+        at += t
+    pos, rot, lp = out
+    assert pos is not None and rot is not None
+    return Motion(first.skeleton, first.fps, pos, rot, lp)
 
 
 # --------------------------------------------------------------------------------------------
@@ -401,6 +526,41 @@ def synthesize(
     Raises:
         ValueError / TypeError: bad path, lengths, poses or sizes.
     """
+    plan, k_noise, decay, seg_out = _prepare(
+        key,
+        texture,
+        path,
+        n_frames,
+        lengths=lengths,
+        start=start,
+        start_texton=start_texton,
+        weighting=weighting,
+        residual=residual,
+        lengths_from=lengths_from,
+        replay=replay,
+        transition=transition,
+    )
+    Y = synthesize_path(texture, k_noise, plan, weighting, residual, replay, decay)
+    return finish(texture, Y, plan, seg_out, start_position, start_heading, decode)
+
+
+def _prepare(
+    key: Array | None,
+    texture: MotionTexture,
+    path: ArrayLike | None,
+    n_frames: int | None,
+    *,
+    lengths: ArrayLike | None,
+    start: Any,
+    start_texton: int | None,
+    weighting: Any,
+    residual: Any,
+    lengths_from: str,
+    replay: Any,
+    transition: Any,
+) -> tuple[PathPlan, Array | None, float | None, np.ndarray]:
+    """The checked arguments of :func:`synthesize` as a planned path: the plan, the noise
+    key, the transition decay and the key segments to report."""
     check_key(key, "synthesize", allow_none=True)
     check_texture(texture)
     check_options(weighting, residual, replay)
@@ -476,21 +636,169 @@ def synthesize(
     # every texton is constrained at both ends (the last one at its successor's key poses),
     # so none runs free (unstable textons diverge)
     end_np = np.asarray(texture.key_poses)[succ_seg]
-    Y = synthesize_path(
-        texture,
-        k_noise,
-        path_np,
-        lens,
-        seg_idx,
-        start_np,
-        end_np,
-        False,
-        weighting,
-        residual,
-        replay,
-        decay,
-    )
+    plan = PathPlan(path_np, lens.astype(np.int64), seg_idx, start_np, end_np, False)
     seg_out = seg_idx.copy()
     if start_np is not None:
         seg_out[0] = -1
-    return finish(texture, Y, path_np, lens, seg_out, start_position, start_heading, decode)
+    return plan, k_noise, decay, seg_out
+
+
+class SynthesisChunk(eqx.Module):
+    """One piece of a :class:`SynthesisStream`.
+
+    Attributes:
+        start: the piece's first frame in the whole synthesis.
+        Y: ``(t, D)`` observations (host array).
+        motion: the decoded piece (host arrays; ``None`` without a feature map), continuing
+            the previous piece's root position and heading.
+    """
+
+    start: int = eqx.field(static=True)
+    Y: Float[np.ndarray, "t D"]
+    motion: Motion | None
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.Y.shape[0])
+
+
+class SynthesisStream:
+    """A synthesis planned whole and made in pieces (:func:`synthesize_chunks`).
+
+    The path, its lengths and key poses are drawn when the stream is made; iterating it
+    synthesises, decodes and yields :class:`SynthesisChunk` pieces of ``chunk_frames``
+    frames (the last shorter), holding one piece at a time. It can be iterated once.
+
+    Attributes:
+        path: ``(n,)`` texton labels.
+        lengths: ``(n,)`` frames per texton.
+        starts: ``(n,)`` first frame of each texton.
+        key_segments: ``(n,)`` training segment of each texton's key poses (``-1``: the given
+            start pose).
+        n_frames: frames of the whole synthesis.
+        chunk_frames: frames per piece.
+    """
+
+    def __init__(
+        self,
+        texture: MotionTexture,
+        pieces: Iterator[np.ndarray],
+        plan: PathPlan,
+        seg_out: np.ndarray,
+        chunk_frames: int,
+        start_position: Any,
+        start_heading: Any,
+        decode: bool,
+    ) -> None:
+        self.path = np.asarray(plan.path)
+        self.lengths = np.asarray(plan.lengths)
+        self.starts = np.cumsum(self.lengths) - self.lengths
+        self.key_segments = np.asarray(seg_out)
+        self.n_frames = plan.n_frames
+        self.chunk_frames = chunk_frames
+        self._texture = texture
+        self._pieces = pieces
+        self._decode = decode and texture.feature_map is not None
+        self._start = (start_position, start_heading)
+        self._used = False
+
+    def __iter__(self) -> Iterator[SynthesisChunk]:
+        if self._used:
+            raise ValueError("a SynthesisStream can be iterated once; make another")
+        self._used = True
+        pieces = self._pieces
+        if not self._decode:
+            at = 0
+            for Y in pieces:
+                yield SynthesisChunk(at, Y, None)
+                at += Y.shape[0]
+            return
+        fm = self._texture.feature_map
+        assert fm is not None
+        held: list[np.ndarray] = []
+
+        def kept() -> Iterator[np.ndarray]:  # each piece's Y, kept for its chunk
+            for Y in pieces:
+                held.append(Y)
+                yield Y
+
+        at = 0
+        for m in fm.decode_chunks(kept(), *self._start):
+            Y = held.pop(0)
+            yield SynthesisChunk(at, Y, m)
+            at += Y.shape[0]
+
+
+def synthesize_chunks(
+    key: Array | None,
+    texture: MotionTexture,
+    path: ArrayLike | None = None,
+    n_frames: int | None = None,
+    *,
+    chunk_frames: int = CHUNK_FRAMES,
+    start_position: Float[ArrayLike, 3] | None = None,
+    start_heading: float | None = None,
+    decode: bool = True,
+    **options: Any,
+) -> SynthesisStream:
+    """:func:`synthesize` as a stream of pieces, for syntheses longer than memory holds
+    (design §5.11).
+
+    The path, the lengths and the key poses are drawn whole, as :func:`synthesize` draws
+    them; the frames are then synthesised block by block, decoded and yielded in pieces of
+    ``chunk_frames`` frames, each continuing the last, so the memory is that of one piece
+    whatever ``n_frames`` is (up to :data:`~mtex_jax.core.MAX_GENERATED_FRAMES`). The pieces'
+    observations together are :func:`synthesize`'s, bit for bit; their decoded motion is
+    its motion up to the rounding of the running root sums (within a piece the same).
+    ``mtex synth`` writes long syntheses this way.
+
+    Args:
+        key, texture, path, n_frames: as :func:`synthesize`.
+        chunk_frames: frames per piece (default :data:`CHUNK_FRAMES`).
+        start_position, start_heading, decode: as :func:`synthesize`.
+        **options: the other keyword arguments of :func:`synthesize` (``lengths``, ``start``,
+            ``start_texton``, ``weighting``, ``residual``, ``lengths_from``, ``replay``,
+            ``transition``).
+
+    Returns:
+        a :class:`SynthesisStream`: the plan, and the pieces when iterated.
+
+    Raises:
+        ValueError / TypeError: as :func:`synthesize`, or ``chunk_frames`` not a positive
+            int, or an unknown option.
+    """
+    chunk_frames = check_count(
+        chunk_frames, "synthesize_chunks: chunk_frames", "MAX_GENERATED_FRAMES"
+    )
+    unknown = sorted(set(options) - set(_OPTIONS))
+    if unknown:
+        raise TypeError(f"synthesize_chunks: unknown options {unknown}; known: {list(_OPTIONS)}")
+    kw = {**_OPTIONS, **options}
+    plan, k_noise, decay, seg_out = _prepare(key, texture, path, n_frames, **kw)
+    blocks = path_blocks(
+        texture, k_noise, plan, kw["weighting"], kw["residual"], kw["replay"], decay
+    )
+    return SynthesisStream(
+        texture,
+        frame_chunks(blocks, chunk_frames),
+        plan,
+        seg_out,
+        chunk_frames,
+        start_position,
+        start_heading,
+        decode,
+    )
+
+
+#: the keyword arguments of :func:`synthesize` that :func:`synthesize_chunks` passes on, with
+#: their defaults
+_OPTIONS: dict[str, Any] = {
+    "lengths": None,
+    "start": None,
+    "start_texton": None,
+    "weighting": "whitened",
+    "residual": "blend",
+    "lengths_from": "durations",
+    "replay": "aligned",
+    "transition": "auto",
+}

@@ -1,5 +1,5 @@
 """The numbers of the text files the package reads (BVH, DeepMimic JSON, the salsa metadata,
-keypoint and camera files): one rule for all of them (issue 57).
+keypoint and camera files, the metadata of model files): one rule for all of them (issue 57).
 
 A number is a finite float64. A decimal no float holds (a 401-digit integer, ``1e400``) and
 NaN or infinity in any spelling (``nan``, ``NaN``, ``INF``, ``-Infinity``; JSON's ``NaN`` and
@@ -19,7 +19,7 @@ import re
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from ..core import check_json_depth
+from ._limits import check_json_depth
 
 __all__ = ["NUMBER", "json_value_line", "load_json", "number_problem", "show_token"]
 
