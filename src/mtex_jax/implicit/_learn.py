@@ -211,7 +211,8 @@ def learn(
     explained = float(np.sum(s[:b] ** 2) / np.sum(s**2))
     codes = codes_np(coeffs)
     order = np.argsort(codes, kind="stable").astype(np.int32)
-    leaf_max = int(np.bincount(codes).max())
+    # the largest leaf from the sorted codes (np.bincount would hold 2**n_components counts)
+    leaf_max = int(np.unique(codes[order], return_counts=True)[1].max())
 
     dtype = np.result_type(*[np.asarray(m.rotations).dtype for m in motions], np.float32)
     f = lambda a: jnp.asarray(np.asarray(a, dtype=dtype))

@@ -15,7 +15,7 @@ from ..core import (
     load_json,
     read_input,
 )
-from ..motion import Motion, Skeleton, slerp
+from ..motion import Motion, Skeleton, slerp_frames
 
 __all__ = ["HUMANOID3D", "parse_deepmimic", "read_deepmimic"]
 
@@ -251,7 +251,7 @@ def _resample_keyframes(motion: Motion, times: np.ndarray, fps: float) -> Motion
     rp = np.asarray(motion.root_positions)
     rot = np.asarray(motion.rotations)
     rp_new = rp[i0] + (rp[i0 + 1] - rp[i0]) * frac[:, None]
-    rot_new = slerp(rot[i0], rot[i0 + 1], frac[:, None])
+    rot_new = slerp_frames(rot, i0, frac)
     return Motion(motion.skeleton, fps, rp_new, rot_new)
 
 

@@ -28,6 +28,7 @@ from ._motion import (
     Motion as Motion,
     concatenate_motions as concatenate_motions,
     slerp as slerp,
+    slerp_frames as slerp_frames,
 )
 from ._rotation import (
     expmap_to_quat as expmap_to_quat,
@@ -78,6 +79,7 @@ __all__ = [
     "quat_twist",
     "raw_features",
     "slerp",
+    "slerp_frames",
     "sub_skeleton",
     "unwrap_expmaps",
     "yaw_quat",

@@ -285,8 +285,7 @@ class Motion(eqx.Module):
         i0 = np.clip(np.floor(u).astype(np.int64), 0, t_old - 2)
         frac = np.clip(u - i0, 0.0, 1.0)
         lin = lambda a: a[i0] + (a[i0 + 1] - a[i0]) * frac.reshape((-1,) + (1,) * (a.ndim - 1))
-        q = np.asarray(m.rotations)
-        rot = slerp(q[i0], q[i0 + 1], frac[:, None])
+        rot = slerp_frames(np.asarray(m.rotations), i0, frac)
         lp = None if m.local_positions is None else lin(m.local_positions)
         return Motion(m.skeleton, float(fps), lin(m.root_positions), rot, lp)
 
@@ -323,6 +322,27 @@ def slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
     w1 = np.where(small, u, np.sin(u * theta) / safe)
     out = w0 * q0 + w1 * q1
     return out / np.linalg.norm(out, axis=-1, keepdims=True)
+
+
+def slerp_frames(q: np.ndarray, i0: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``slerp(q[i0], q[i0 + 1], u[:, None])`` for the frames of a resampling, in blocks of
+    frames: the same values, with the temporaries of one block (a million frames of a clip
+    would otherwise hold a dozen float64 copies of it).
+
+    Args:
+        q: ``(T, J, 4)`` unit quaternions of a clip.
+        i0: ``(n,)`` frame before each new frame (``0 <= i0 < T - 1``).
+        u: ``(n,)`` fractions in ``[0, 1]`` between frames ``i0`` and ``i0 + 1``.
+
+    Returns:
+        ``(n, J, 4)`` float64 quaternions.
+    """
+    q = np.asarray(q)
+    out = np.empty((i0.shape[0], *q.shape[1:]), np.float64)
+    for a in range(0, i0.shape[0], _BLOCK):
+        i, f = i0[a : a + _BLOCK], u[a : a + _BLOCK]
+        out[a : a + i.shape[0]] = slerp(q[i], q[i + 1], f[:, None])
+    return out
 
 
 def check_compatible(motions: Sequence[Motion], where: str, hint: str) -> None:

@@ -633,6 +633,9 @@ def _prepare(
                 lens = scale_lengths(lens, n_frames, np.full(lens.size, 2))
     if (lens < 2).any():
         raise ValueError(f"every texton needs >= 2 frames, got lengths {lens.tolist()}")
+    # the frames the plan makes (the key poses' or drawn lengths of a given path), before any
+    # array of them is allocated
+    check_size(int(lens.sum()), "synthesize: frames of the planned path", "MAX_GENERATED_FRAMES")
     # every texton is constrained at both ends (the last one at its successor's key poses),
     # so none runs free (unstable textons diverge)
     end_np = np.asarray(texture.key_poses)[succ_seg]
