@@ -49,6 +49,7 @@ CHILD = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     import mtex_jax as mj
     from mtex_jax.core import MAX_GENERATED_FRAMES, MAX_MEMBER_BYTES, MAX_MODEL_BYTES
+    from mtex_jax.core import MAX_CANDIDATES as MAX_C
     from mtex_jax.core._limits import json_depth
     from mtex_jax.io import load_salsa
     from mtex_jax.motion import concatenate_motions
@@ -484,8 +485,8 @@ CHILD = textwrap.dedent(
         "path-textons-15-textons": (None, m_path(True)),
         "path-textons-synthesize-lengths": (None, m_path_synth(10)),
         "path-textons-synthesize": (None, m_path_synth(None)),
-        "candidates-walk": (None, m_implicit_synth(lambda: [walk], 5, 100, candidates=10_000)),
-        "candidates-salsa": (None, m_implicit_synth(salsa10_30, 10, 100, candidates=10_000)),
+        "candidates-walk": (None, m_implicit_synth(lambda: [walk], 5, 100, candidates=MAX_C)),
+        "candidates-salsa": (None, m_implicit_synth(salsa10_30, 10, 100, candidates=MAX_C)),
         "components": (None, m_components),
         "generated-implicit-walk": (None, m_implicit_synth(lambda: [walk], 5, 1_000_000)),
         "generated-implicit-salsa": (None, m_implicit_synth(salsa2_30, 10, 1_000_000)),
@@ -623,16 +624,7 @@ CASES = [
         refused=r"frames of the planned path = 1,283,331 exceeds the limit MAX_GENERATED_FRAMES",
     ),
     Case("candidates-walk", "MAX_CANDIDATES", slow=True),
-    Case(
-        "candidates-salsa",
-        "MAX_CANDIDATES",
-        slow=True,
-        xfail=(
-            "implicit synthesize with candidates=10,000 (salsa, d = 10): synthesize_jit holds "
-            "leaf_cap × d × P float64 per walk (276 KB: 2.8 GB in one XLA buffer) and takes "
-            "237 s for 100 frames; lower MAX_CANDIDATES to 1,000 or walk in blocks"
-        ),
-    ),
+    Case("candidates-salsa", "MAX_CANDIDATES", slow=True),
     Case("components", "MAX_COMPONENTS"),
     Case("generated-implicit-walk", "MAX_GENERATED_FRAMES", slow=True),
     Case(

@@ -139,11 +139,12 @@ MAX_STATE_DIM = 4_096
 #: convergence as before (two salsa clips: 5 s, 0.4 GiB); the history holds 16 bytes an
 #: iteration.
 MAX_ITERATIONS = 100_000
-#: Tree walks per search of the implicit model's sampler (``SynthesisConfig.candidates``):
-#: each walk holds a few windows of the database (``leaf_cap × d × P`` numbers). At the limit
-#: 100 frames of the walk's model take 10 s and 0.3 GiB; of the salsa model (``d = 10``, leaves
-#: of 32) one buffer of 2.8 GB and 237 s, more than a 2 GiB budget.
-MAX_CANDIDATES = 10_000
+#: Tree walks per search of the implicit model's sampler (``SynthesisConfig.candidates``,
+#: default 16): each walk holds ``leaf_cap × d × P`` numbers of the database (276 KB for the
+#: salsa model, ``d = 10``, leaves capped at 32). At the limit 100 frames of the salsa model
+#: take 38 s and 0.39 GiB above the baseline, of the walk's 5 s and 0.06 GiB (at 10,000 walks
+#: the salsa model asked for one buffer of 2.8 GB and took 237 s).
+MAX_CANDIDATES = 1_000
 #: Principal components of the implicit model's tree (``n_components``). At the limit
 #: ``implicit.learn`` of the walk takes 1.6 s and 0.11 GiB above the baseline (the leaves are
 #: counted from the sorted codes, not in an array of ``2**30`` counts).
