@@ -108,7 +108,8 @@ MAX_PARTICLES = 1_000_000
 #: Bytes of one motion file (BVH or DeepMimic JSON) read into memory (the salsa clips are
 #: about 1 MB each). Parsing holds 18 to 34 bytes a byte of the file (Python lists of tokens
 #: or numbers): at the limit a salsa BVH file (210,000 frames) needs 4.5 GiB above the
-#: baseline and 19 s, a 208 MB DeepMimic file 3.5 GiB and 38 s, more than a 2 GiB budget.
+#: baseline and 19 s, a 208 MB DeepMimic file more than 2 GiB (its JSON lists of numbers), more
+#: than a 2 GiB budget.
 MAX_INPUT_BYTES = 256 << 20
 #: Frames of one texton segment (``LearnConfig.tmax``, ``tmin``, ``chunk_frames``, segment
 #: lengths of a model file): the segment scores take ``T × tmax`` entries. At the limit
@@ -277,6 +278,7 @@ def check_frame_time(seconds: float, where: str) -> float:
 
 
 _JSON_STRING = None
+_DEPTH_BLOCK = 1 << 22  # bytes of JSON text per block of json_depth
 
 
 def json_depth(text: str) -> int:
@@ -291,8 +293,16 @@ def json_depth(text: str) -> int:
     if _JSON_STRING is None:
         _JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"', re.DOTALL)
     b = np.frombuffer(_JSON_STRING.sub('""', text).encode("utf-8", "replace"), np.uint8)
-    step = np.isin(b, (ord("["), ord("{"))).astype(np.int64) - np.isin(b, (ord("]"), ord("}")))
-    return int(np.cumsum(step).max()) if step.size else 0
+    # in blocks of bytes, the depth carried from block to block: the temporaries of one block
+    # (16 bytes a byte of text for the whole document otherwise: 3.1 GiB for a 208 MB file)
+    deepest, depth = 0, 0
+    for a in range(0, b.size, _DEPTH_BLOCK):
+        part = b[a : a + _DEPTH_BLOCK]
+        step = np.isin(part, (ord("["), ord("{"))).astype(np.int64)
+        step -= np.isin(part, (ord("]"), ord("}")))
+        run = depth + np.cumsum(step)
+        deepest, depth = max(deepest, int(run.max())), int(run[-1])
+    return deepest
 
 
 def check_json_depth(text: str, where: str) -> None:
