@@ -32,8 +32,9 @@ A texton path ``ℓ_1 … ℓ_n`` with segment lengths ``l_1 … l_n`` is synthe
 4. The concatenated observations ``Y (Σ l_m, D)`` are decoded into a :class:`Motion` whose
    root trajectory is integrated continuously from a start position and heading.
 
-All textons of a path are synthesised by one jit-compiled ``lax.map`` over the path with a
-common padded length (the end constraint sits at a per-texton row of a static-shaped mask).
+All textons of a path (of a block of it, for a long path) are synthesised by one jit-compiled
+``lax.map`` with a common padded length (the end constraint sits at a per-texton row of a
+static-shaped mask).
 Every synthesis of up to 4,096 frames is one size class (design §11): the path axis has the
 rows of a random path of that many frames (padded textons skip their solve), the per-texton
 length is a multiple of 64 frames and at least ``tmax + 2``, the random walk, the drawn
